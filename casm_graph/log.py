@@ -1,0 +1,317 @@
+"""Log bundles (INTERFACE section 1): load and validate a directory of CSV files, or write one.
+
+Every problem with the input is reported as one :class:`LogError` naming file, row and column,
+so the command line can print it and exit with status 2 before anything is written.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+
+class LogError(ValueError):
+    """Bad input: the message names the file, row and column at fault."""
+
+
+@dataclass(frozen=True)
+class Log:
+    """One robot log: the map, the command per step, the observations and (optionally) the truth.
+
+    Poses live at ``pose_times`` (the command times plus one final pose); observation ``i``
+    belongs to pose ``obs_step[i]``.
+    """
+
+    landmark_ids: np.ndarray            # (L,) int
+    landmark_xy: np.ndarray             # (L, 2)
+    t: np.ndarray                       # (T,) command times
+    action: np.ndarray | None           # (T,) int action ids, or None for continuous commands
+    controls: np.ndarray | None         # (T, k) continuous commands, or None
+    control_names: tuple[str, ...]      # ('v', 'w') or ('vx', 'vy', 'w') or ()
+    obs_t: np.ndarray                   # (N,)
+    obs_landmark: np.ndarray            # (N,) landmark ids
+    obs_reading: np.ndarray             # (N,) NaN where not measured
+    obs_bearing: np.ndarray             # (N,) NaN where not measured
+    obs_pan: np.ndarray | None = None   # (N,) NaN where unknown; None when the column is absent
+    attempted: dict[int, np.ndarray] = field(default_factory=dict)   # actions.csv, information only
+    truth: np.ndarray | None = None     # (T+1, 4) t, x, y, theta at pose times, when known
+
+    @property
+    def steps(self) -> int:
+        return len(self.t)
+
+    @property
+    def dt(self) -> np.ndarray:
+        """Duration of each command step; the last step lasts the median step."""
+        if len(self.t) == 1:
+            return np.array([1.0])
+        d = np.diff(self.t)
+        return np.append(d, np.median(d))
+
+    @property
+    def pose_times(self) -> np.ndarray:
+        return np.append(self.t, self.t[-1] + self.dt[-1])
+
+    @property
+    def obs_step(self) -> np.ndarray:
+        """Index of the pose each observation belongs to (nearest pose time)."""
+        return nearest_index(self.pose_times, self.obs_t)
+
+    @property
+    def landmark_index(self) -> np.ndarray:
+        """Row of ``landmark_xy`` for each observation."""
+        order = np.argsort(self.landmark_ids)
+        pos = np.searchsorted(self.landmark_ids[order], self.obs_landmark)
+        return order[pos]
+
+    @property
+    def action_ids(self) -> np.ndarray:
+        """Sorted distinct action ids that were run."""
+        return np.unique(self.action) if self.action is not None else np.array([], int)
+
+    @property
+    def minutes(self) -> float:
+        return float(self.pose_times[-1] - self.pose_times[0]) / 60.0
+
+    def window(self, t0: float, t1: float) -> "Log":
+        """The part of the log with command times in [t0, t1)."""
+        keep = (self.t >= t0) & (self.t < t1)
+        if keep.sum() < 2:
+            raise LogError(f"window [{t0}, {t1}) holds fewer than two command steps")
+        idx = np.flatnonzero(keep)
+        t_end = self.t[idx[-1]] + self.dt[idx[-1]]
+        ok = (self.obs_t >= self.t[idx[0]]) & (self.obs_t <= t_end)
+        truth = None
+        if self.truth is not None:
+            truth = self.truth[np.append(idx, idx[-1] + 1)]
+        return replace(
+            self,
+            t=self.t[idx],
+            action=None if self.action is None else self.action[idx],
+            controls=None if self.controls is None else self.controls[idx],
+            obs_t=self.obs_t[ok], obs_landmark=self.obs_landmark[ok],
+            obs_reading=self.obs_reading[ok], obs_bearing=self.obs_bearing[ok],
+            obs_pan=None if self.obs_pan is None else self.obs_pan[ok],
+            truth=truth,
+        )
+
+
+def nearest_index(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Index of the nearest element of the sorted ``grid`` for each ``x``."""
+    i = np.clip(np.searchsorted(grid, x), 1, len(grid) - 1)
+    left_closer = (x - grid[i - 1]) <= (grid[i] - x)
+    return np.where(left_closer, i - 1, i)
+
+
+def wrap(a):
+    """Wrap angles to (-pi, pi]."""
+    w = np.mod(np.asarray(a, dtype=float) + np.pi, 2 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+# --------------------------------------------------------------------------- reading CSV files
+
+class _Table:
+    """The columns of one CSV file as strings, with the file name kept for error messages."""
+
+    def __init__(self, path: Path):
+        self.name = path.name
+        if not path.is_file():
+            raise LogError(f"{path.name}: missing file (expected at {path})")
+        try:
+            with path.open(newline="", encoding="utf-8") as fh:
+                rows = list(csv.reader(fh))
+        except UnicodeDecodeError as exc:
+            raise LogError(f"{path.name}: not a UTF-8 text file ({exc.reason})") from None
+        except csv.Error as exc:
+            raise LogError(f"{path.name}: not a readable CSV file ({exc})") from None
+        rows = [r for r in rows if any(c.strip() for c in r)]
+        if not rows:
+            raise LogError(f"{path.name}: empty file (no header row)")
+        self.header = [h.strip() for h in rows[0]]
+        self.rows = rows[1:]
+        for i, r in enumerate(self.rows, start=1):
+            if len(r) < len(self.header):
+                raise LogError(f"{self.name}, row {i}: {len(r)} cells but the header has "
+                               f"{len(self.header)} columns")
+
+    def __len__(self):
+        return len(self.rows)
+
+    def has(self, col: str) -> bool:
+        return col in self.header
+
+    def require(self, *cols: str) -> None:
+        for c in cols:
+            if c not in self.header:
+                raise LogError(f"{self.name}: missing column '{c}' (header: {','.join(self.header)})")
+
+    def nonempty(self) -> None:
+        if not self.rows:
+            raise LogError(f"{self.name}: no data rows")
+
+    def numbers(self, col: str, allow_empty: bool = False) -> np.ndarray:
+        """Column as floats; NaN/inf and non-numbers are errors, empty cells NaN when allowed."""
+        j = self.header.index(col)
+        out = np.empty(len(self.rows))
+        for i, r in enumerate(self.rows):
+            cell = r[j].strip()
+            if cell == "":
+                if allow_empty:
+                    out[i] = np.nan
+                    continue
+                raise LogError(f"{self.name}, row {i + 1}, column '{col}': empty cell where a number "
+                               f"is required")
+            try:
+                v = float(cell)
+            except ValueError:
+                raise LogError(f"{self.name}, row {i + 1}, column '{col}': '{cell}' is not a "
+                               f"number") from None
+            if not math.isfinite(v):
+                raise LogError(f"{self.name}, row {i + 1}, column '{col}': '{cell}' is not a "
+                               f"finite number")
+            out[i] = v
+        return out
+
+    def integers(self, col: str) -> np.ndarray:
+        x = self.numbers(col)
+        bad = np.flatnonzero(x != np.round(x))
+        if len(bad):
+            i = bad[0]
+            raise LogError(f"{self.name}, row {i + 1}, column '{col}': '{self.rows[i][self.header.index(col)].strip()}'"
+                           f" is not an integer")
+        return x.astype(np.int64)
+
+
+def _increasing(tab: _Table, t: np.ndarray, strict: bool) -> None:
+    d = np.diff(t)
+    bad = np.flatnonzero(d <= 0 if strict else d < 0)
+    if len(bad):
+        i = bad[0] + 1
+        word = "increasing" if strict else "non-decreasing"
+        raise LogError(f"{tab.name}, row {i + 1}, column 't': times not {word} "
+                       f"({t[i - 1]:g} then {t[i]:g})")
+
+
+def load(directory: str | Path) -> Log:
+    """Read and validate a log bundle; raise :class:`LogError` on any bad input."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise LogError(f"{d}: not a directory (a log bundle is a directory of CSV files)")
+
+    lm = _Table(d / "landmarks.csv")
+    lm.require("landmark", "x", "y")
+    lm.nonempty()
+    ids = lm.integers("landmark")
+    xy = np.column_stack([lm.numbers("x"), lm.numbers("y")])
+    _, first = np.unique(ids, return_index=True)
+    if len(first) != len(ids):
+        dup = next(i for i in range(len(ids)) if i not in set(first))
+        raise LogError(f"landmarks.csv, row {dup + 1}, column 'landmark': id {ids[dup]} appears twice")
+
+    cm = _Table(d / "commands.csv")
+    cm.require("t")
+    cm.nonempty()
+    t = cm.numbers("t")
+    _increasing(cm, t, strict=True)
+    action = controls = None
+    names: tuple[str, ...] = ()
+    if cm.has("action"):
+        action = cm.integers("action")
+    elif all(cm.has(c) for c in ("vx", "vy", "w")):
+        names = ("vx", "vy", "w")
+    elif all(cm.has(c) for c in ("v", "w")):
+        names = ("v", "w")
+    else:
+        raise LogError(f"commands.csv: missing column 'action' (or continuous commands 'v,w' or "
+                       f"'vx,vy,w'); header: {','.join(cm.header)}")
+    if names:
+        controls = np.column_stack([cm.numbers(c) for c in names])
+
+    ob = _Table(d / "observations.csv")
+    ob.require("t", "landmark", "reading", "bearing")
+    ob.nonempty()
+    ot = ob.numbers("t")
+    _increasing(ob, ot, strict=False)
+    ol = ob.integers("landmark")
+    known = set(ids.tolist())
+    for i, k in enumerate(ol):
+        if k not in known:
+            raise LogError(f"observations.csv, row {i + 1}, column 'landmark': unknown landmark id "
+                           f"{k} (landmarks.csv has {sorted(known)})")
+    reading = ob.numbers("reading", allow_empty=True)
+    bearing = ob.numbers("bearing", allow_empty=True)
+    pan = ob.numbers("pan", allow_empty=True) if ob.has("pan") else None
+    if np.all(np.isnan(reading) & np.isnan(bearing)):
+        raise LogError("observations.csv: every row has both 'reading' and 'bearing' empty")
+    step = np.median(np.diff(t)) if len(t) > 1 else 1.0
+    out = np.flatnonzero((ot < t[0] - step / 2) | (ot > t[-1] + 1.5 * step))
+    if len(out):
+        i = out[0]
+        raise LogError(f"observations.csv, row {i + 1}, column 't': time {ot[i]:g} lies outside the "
+                       f"commands ({t[0]:g} to {t[-1] + step:g})")
+
+    attempted: dict[int, np.ndarray] = {}
+    if (d / "actions.csv").is_file():
+        ac = _Table(d / "actions.csv")
+        ac.require("action", "vx_cmd", "vy_cmd", "w_cmd")
+        a_ids = ac.integers("action")
+        cmd = np.column_stack([ac.numbers(c) for c in ("vx_cmd", "vy_cmd", "w_cmd")])
+        attempted = {int(a): cmd[i] for i, a in enumerate(a_ids)}
+
+    truth = None
+    if (d / "truth.csv").is_file():
+        tr = _Table(d / "truth.csv")
+        tr.require("t", "x", "y", "theta")
+        truth = np.column_stack([tr.numbers(c) for c in ("t", "x", "y", "theta")])
+
+    return Log(landmark_ids=ids, landmark_xy=xy, t=t, action=action, controls=controls,
+               control_names=names, obs_t=ot, obs_landmark=ol, obs_reading=reading,
+               obs_bearing=bearing, obs_pan=pan, attempted=attempted, truth=truth)
+
+
+# --------------------------------------------------------------------------- writing
+
+def _fmt(x) -> str:
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    x = float(x)
+    return "" if math.isnan(x) else repr(round(x, 9))
+
+
+def _write_csv(path: Path, header: list[str], columns: list[np.ndarray]) -> None:
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for row in zip(*columns):
+            w.writerow([_fmt(v) for v in row])
+
+
+def write(log: Log, directory: str | Path) -> Path:
+    """Write ``log`` as a bundle (creating the directory)."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    _write_csv(d / "landmarks.csv", ["landmark", "x", "y"],
+               [log.landmark_ids, log.landmark_xy[:, 0], log.landmark_xy[:, 1]])
+    if log.action is not None:
+        _write_csv(d / "commands.csv", ["t", "action"], [log.t, log.action])
+    else:
+        _write_csv(d / "commands.csv", ["t", *log.control_names],
+                   [log.t, *log.controls.T])
+    cols = ["t", "landmark", "reading", "bearing"]
+    data = [log.obs_t, log.obs_landmark, log.obs_reading, log.obs_bearing]
+    if log.obs_pan is not None:
+        cols.append("pan")
+        data.append(log.obs_pan)
+    _write_csv(d / "observations.csv", cols, data)
+    if log.attempted:
+        ids = sorted(log.attempted)
+        cmd = np.array([log.attempted[a] for a in ids])
+        _write_csv(d / "actions.csv", ["action", "vx_cmd", "vy_cmd", "w_cmd"],
+                   [np.array(ids), *cmd.T])
+    if log.truth is not None:
+        _write_csv(d / "truth.csv", ["t", "x", "y", "theta"], list(log.truth.T))
+    return d
