@@ -11,11 +11,12 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+import scipy.sparse as sp
 from gtsam.symbol_shorthand import C, V, X
 
 import factors
 
-from .log import Log, nearest_index
+from .log import Log, nearest_index, wrap
 from .model import Model
 
 VELOCITY_PRIOR_SIGMA = 10.0      # weak priors keep never-run actions and the polynomial well posed
@@ -53,7 +54,11 @@ def layout(log: Log, model: Model, stride: int = 1) -> Layout:
 
 
 def build(log: Log, lay: Layout, model: Model, parts=("action", "reading", "bearing")) -> gtsam.NonlinearFactorGraph:
-    """Factor graph of the log under ``model``'s noise levels (sigmas are fixed inside the factors)."""
+    """The log as a GTSAM graph of ``CustomFactor``s (sigmas fixed inside the factors).
+
+    This is the reference formulation, for GTSAM's own optimizers and marginals; :class:`Problem`
+    linearises the same factors in one numpy pass for the hot path.
+    """
     g = gtsam.NonlinearFactorGraph()
     if "action" in parts:
         kind = factors.REGISTRY["action"]
@@ -79,6 +84,146 @@ def build(log: Log, lay: Layout, model: Model, parts=("action", "reading", "bear
     deg = len(model.reading_poly)
     g.add(gtsam.PriorFactorVector(C(0), np.zeros(deg), gtsam.noiseModel.Isotropic.Sigma(deg, POLY_PRIOR_SIGMA)))
     return g
+
+
+@dataclass
+class State:
+    """The variables of the graph as arrays: knot poses, velocity table, polynomial."""
+
+    poses: np.ndarray        # (K, 3)
+    velocities: np.ndarray   # (A, 3)
+    poly: np.ndarray         # (D+1,)
+
+
+@dataclass
+class Rows:
+    """Whitened residual rows and Jacobian blocks of every factor, grouped by channel."""
+
+    action_e: np.ndarray     # (K-1, 3)
+    action_J: list           # [Ha, Hb, Hv] each (K-1, 3, 3)
+    reading_e: np.ndarray    # (Nr,)
+    reading_J: list          # [Hp (Nr, 3), Hc (Nr, D+1)]
+    bearing_e: np.ndarray    # (Nb,)
+    bearing_J: np.ndarray    # (Nb, 3)
+    prior_e: np.ndarray      # (3A + D + 1,) velocity and polynomial priors
+
+
+class Problem:
+    """The graph of one log under fixed noise levels, evaluated and linearised in numpy.
+
+    Holds the fixed data (layout, measurements, sigmas); the variables travel as a :class:`State`.
+    """
+
+    def __init__(self, log: Log, lay: Layout, model: Model):
+        self.log, self.lay = log, lay
+        self.motion_sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(lay.seg_steps)[:, None]
+        lm = log.landmark_xy[log.landmark_index]
+        r = ~np.isnan(log.obs_reading)
+        b = ~np.isnan(log.obs_bearing)
+        self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
+        self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
+        self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
+        self.n_poly = len(model.reading_poly)
+
+    def rows(self, st: State, jacobians: bool = True) -> Rows:
+        lay = self.lay
+        P = st.poses
+        e, J = factors.action.error(P[:-1], P[1:], st.velocities[lay.seg_action], lay.seg_steps, lay.seg_dt)
+        w = 1.0 / self.motion_sigma
+        ae, aJ = e * w, [j * w[:, :, None] for j in J]
+        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
+        re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
+        e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
+        be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
+        pe = np.concatenate([st.velocities.ravel() / VELOCITY_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
+        return Rows(ae, aJ, re, rJ, be, bJ, pe)
+
+    def cost(self, st: State) -> float:
+        """GTSAM's error: half the sum of squared whitened residuals."""
+        r = self.rows(st)
+        return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.reading_e ** 2) + np.sum(r.bearing_e ** 2)
+                           + np.sum(r.prior_e ** 2))
+
+    def linearize(self, st: State) -> gtsam.GaussianFactorGraph:
+        """Gauss-Newton system at ``st``: one factor per action segment and per knot with sightings."""
+        r = self.rows(st)
+        lay, unit3 = self.lay, gtsam.noiseModel.Unit.Create(3)
+        g = gtsam.GaussianFactorGraph()
+        Ha, Hb, Hv = r.action_J
+        for i in range(lay.n_poses - 1):
+            g.add(X(i), Ha[i], X(i + 1), Hb[i], V(int(lay.seg_action[i])), Hv[i], -r.action_e[i], unit3)
+        D = self.n_poly
+        knot = np.concatenate([self.r_knot, self.b_knot])
+        Jp = np.concatenate([r.reading_J[0], r.bearing_J])
+        Jc = np.concatenate([r.reading_J[1], np.zeros((len(self.b_knot), D))])
+        e = np.concatenate([r.reading_e, r.bearing_e])
+        order = np.argsort(knot, kind="stable")
+        knot, Jp, Jc, e = knot[order], Jp[order], Jc[order], e[order]
+        cuts = np.flatnonzero(np.diff(knot)) + 1
+        for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
+            g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1],
+                  gtsam.noiseModel.Unit.Create(int(s1 - s0)))
+        eye3 = np.eye(3) / VELOCITY_PRIOR_SIGMA
+        for a in range(lay.n_actions):
+            g.add(V(a), eye3, -r.prior_e[3 * a:3 * a + 3], unit3)
+        g.add(C(0), np.eye(D) / POLY_PRIOR_SIGMA, -r.prior_e[3 * lay.n_actions:], gtsam.noiseModel.Unit.Create(D))
+        return g
+
+    def retract(self, st: State, delta: gtsam.VectorValues) -> State:
+        """Apply a tangent step: poses move in their own body frame (Pose2 expmap to first order)."""
+        K = self.lay.n_poses
+        d = np.array([delta.at(X(i)) for i in range(K)])
+        th = st.poses[:, 2]
+        c, s = np.cos(th), np.sin(th)
+        poses = np.column_stack([st.poses[:, 0] + c * d[:, 0] - s * d[:, 1],
+                                 st.poses[:, 1] + s * d[:, 0] + c * d[:, 1], wrap(th + d[:, 2])])
+        vel = st.velocities + np.array([delta.at(V(a)) for a in range(self.lay.n_actions)])
+        return State(poses, vel, st.poly + np.asarray(delta.at(C(0))))
+
+    def keys_dims(self) -> list[tuple[int, int]]:
+        return ([(X(i), 3) for i in range(self.lay.n_poses)] + [(V(a), 3) for a in range(self.lay.n_actions)]
+                + [(C(0), self.n_poly)])
+
+    def jacobian(self, st: State):
+        """Whitened sparse Jacobian (rows: action x/y/theta interleaved, reading, bearing, priors) and residual."""
+        r = self.rows(st)
+        K, A, D = self.lay.n_poses, self.lay.n_actions, self.n_poly
+        n_act, n_r, n_b = 3 * (K - 1), len(r.reading_e), len(r.bearing_e)
+        rows, cols, vals = [], [], []
+
+        def block(row0, J, col0):
+            n, m, d = J.shape
+            rr = row0[:, None, None] + np.arange(m)[None, :, None]
+            cc = col0[:, None, None] + np.arange(d)[None, None, :]
+            rows.append(np.broadcast_to(rr, J.shape).ravel())
+            cols.append(np.broadcast_to(cc, J.shape).ravel())
+            vals.append(J.ravel())
+
+        seg = np.arange(K - 1)
+        Ha, Hb, Hv = r.action_J
+        block(3 * seg, Ha, 3 * seg)
+        block(3 * seg, Hb, 3 * (seg + 1))
+        block(3 * seg, Hv, 3 * K + 3 * self.lay.seg_action)
+        block(n_act + np.arange(n_r), r.reading_J[0][:, None, :], 3 * self.r_knot)
+        block(n_act + np.arange(n_r), r.reading_J[1][:, None, :], np.full(n_r, 3 * K + 3 * A))
+        block(n_act + n_r + np.arange(n_b), r.bearing_J[:, None, :], 3 * self.b_knot)
+        n_p = 3 * A + D
+        prior = np.concatenate([np.full(3 * A, 1 / VELOCITY_PRIOR_SIGMA), np.full(D, 1 / POLY_PRIOR_SIGMA)])
+        rows.append(n_act + n_r + n_b + np.arange(n_p))
+        cols.append(3 * K + np.arange(n_p))
+        vals.append(prior)
+        shape = (n_act + n_r + n_b + n_p, 3 * K + n_p)
+        A_ = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape)
+        e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e])
+        groups = {"forward": np.arange(0, n_act, 3), "lateral": np.arange(1, n_act, 3),
+                  "turn": np.arange(2, n_act, 3), "reading": n_act + np.arange(n_r),
+                  "bearing": n_act + n_r + np.arange(n_b)}
+        return A_, e, groups
+
+
+def state(poses: np.ndarray, model: Model) -> State:
+    return State(np.asarray(poses, float).copy(), np.asarray(model.velocities, float).copy(),
+                 np.asarray(model.reading_poly, float).copy())
 
 
 def values(poses: np.ndarray, model: Model) -> gtsam.Values:

@@ -19,10 +19,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from .log import Log, wrap
 from .model import Model
+
+
+OUTLIER_Z2 = np.float32(8.0)
 
 
 @dataclass
@@ -53,43 +55,71 @@ def _grid(log: Log, cell: float, margin: float) -> _Grid:
     return _Grid(x, y, cell, dist)
 
 
-def _smooth(grid: _Grid, step_of_obs: np.ndarray, lm_of_obs: np.ndarray, reading: np.ndarray,
-            predict, sigma, n_steps: int, blur: float):
-    """Histogram forward-backward smoother; returns posterior mean positions and log evidence."""
+def _blur_matrix(n: int, blur: float) -> np.ndarray:
+    """(n, n) Gaussian blur along one axis with zero outside the grid (mass leaving the field is lost)."""
+    i = np.arange(n)
+    K = np.exp(-0.5 * ((i[:, None] - i[None, :]) / blur) ** 2)
+    K[np.abs(i[:, None] - i[None, :]) > max(1, int(np.ceil(3 * blur)))] = 0.0
+    return K / K.sum(axis=1, keepdims=True).max()
+
+
+def _log_likelihood(grid: _Grid, step_of_obs, lm_of_obs, reading, predict, sigma):
+    """Steps with readings, and the (n, ny, nx) summed log-likelihood of each at every cell.
+
+    The Gaussian term is capped at ``OUTLIER_Z2`` so a reading that fits nowhere cannot veto a cell.
+    """
+    pred = np.stack([predict(d) for d in grid.dist]).astype(np.float32)
+    s = (np.asarray(sigma(reading), np.float32) * np.ones(len(reading), np.float32))
     order = np.argsort(step_of_obs, kind="stable")
-    bounds = np.searchsorted(step_of_obs[order], np.arange(n_steps + 1))
-    pred = [predict(grid.dist[l]) for l in range(len(grid.dist))]
+    steps = step_of_obs[order]
+    first = np.flatnonzero(np.r_[True, np.diff(steps) != 0])
+    out = np.empty((len(first), *grid.dist.shape[1:]), dtype=np.float32)
+    for lo in range(0, len(first), 1024):
+        g = first[lo:lo + 1024]
+        end = first[lo + 1024] if lo + 1024 < len(first) else len(order)
+        j = order[g[0]:end]
+        z = (reading[j, None, None].astype(np.float32) - pred[lm_of_obs[j]]) / s[j, None, None]
+        out[lo:lo + len(g)] = np.add.reduceat(-0.5 * np.minimum(z * z, OUTLIER_Z2), g - g[0], axis=0)
+    return steps[first], out
+
+
+def _smooth(grid: _Grid, step_of_obs: np.ndarray, lm_of_obs: np.ndarray, reading: np.ndarray,
+            predict, sigma, n_steps: int, blur: float, means: bool = True):
+    """Histogram forward-backward smoother; returns posterior mean positions and log evidence.
+
+    With ``means=False`` only the forward pass runs (the evidence needs nothing more).
+    """
+    steps, ll = _log_likelihood(grid, step_of_obs, lm_of_obs, reading, predict, sigma)
+    row = np.full(n_steps, -1)
+    row[steps] = np.arange(len(steps))
     shape = grid.dist.shape[1:]
-
-    def likelihood(k):
-        out = None
-        for j in order[bounds[k]:bounds[k + 1]]:
-            r = reading[j]
-            s = sigma(r)
-            lik = 0.02 + np.exp(-0.5 * ((r - pred[lm_of_obs[j]]) / s) ** 2)
-            out = lik if out is None else out * lik
-        return out
-
+    Ky, Kx = _blur_matrix(shape[0], blur), _blur_matrix(shape[1], blur).T
     alpha = np.empty((n_steps, *shape), dtype=np.float32)
     a = np.full(shape, 1.0 / np.prod(shape))
     log_ev = 0.0
     for k in range(n_steps):
         if k:
-            a = gaussian_filter(a, blur, mode="constant")
-        lik = likelihood(k)
-        if lik is not None:
-            a = a * lik
+            a = Ky @ a @ Kx
+        if row[k] >= 0:
+            lk = ll[row[k]]
+            m = float(lk.max())
+            a = a * np.exp(lk - m)
+            log_ev += m
         z = a.sum()
         log_ev += np.log(z)
         a /= z
         alpha[k] = a
+    if not means:
+        return None, log_ev
     mean = np.empty((n_steps, 2))
     b = np.ones(shape)
     X, Y = np.meshgrid(grid.x, grid.y)
     for k in range(n_steps - 1, -1, -1):
         if k < n_steps - 1:
-            lik = likelihood(k + 1)
-            b = gaussian_filter(b if lik is None else b * lik, blur, mode="constant")
+            if row[k + 1] >= 0:
+                lk = ll[row[k + 1]]
+                b = b * np.exp(lk - lk.max())
+            b = Ky @ b @ Kx
             b /= b.max()
         g = alpha[k] * b
         g /= g.sum()
@@ -143,22 +173,29 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float = 0.1) -> St
     r_scale = float(np.median(np.abs(reading - r_med))) + 1e-9
     args = (obs_knot[has_r], lm_idx[has_r], reading)
 
-    # 1. sensor hypotheses reading = k d^p, scored by evidence
+    # 1. sensor hypotheses reading = k d^p, scored by evidence on a coarser grid (3x stride, 2x cell)
+    c_stride, c_cell = 3 * stride, 2 * cell
+    c_grid = _grid(log, c_cell, margin=1.5)
+    c_knot = np.clip(np.round(log.obs_step / c_stride).astype(int), 0, T // c_stride)
+    c_blur = 0.6 * dt_k * 3 / c_cell
+    c_args = (c_knot[has_r], lm_idx[has_r], reading)
     d_typ = np.geomspace(0.5, 2.0 * np.ptp(log.landmark_xy, axis=0).max() + 0.5, 10)
     best = None
     for p in (-1.0, 1.0):
         for dt_ in d_typ:
             k = r_med / dt_ ** p
-            mean, ev = _smooth(grid, *args, lambda d, k=k, p=p: k * d ** p,
-                               lambda r: 0.15 * abs(r) + 0.1 * r_scale, len(knots), blur)
+            _, ev = _smooth(c_grid, *c_args, lambda d, k=k, p=p: k * d ** p,
+                            lambda r: 0.15 * abs(r) + 0.1 * r_scale, T // c_stride + 1, c_blur,
+                            means=False)
             if best is None or ev > best[2]:
-                best = (p, k, ev, mean)
-    p, k, ev, mean = best
-
+                best = (p, k, ev)
+    p, k, ev = best
+    mean, ev = _smooth(grid, *args, lambda d: k * d ** p, lambda r: 0.15 * abs(r) + 0.1 * r_scale,
+                       len(knots), blur)
     # EM rounds: refit the curve as a polynomial against the smoothed distances
     deg = len(model.reading_poly) - 1
     lm = log.landmark_xy[lm_idx]
-    for _ in range(3):
+    for _ in range(2):
         d_obs = np.hypot(*(mean[obs_knot] - lm).T)
         poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, deg)
         res = reading - np.polynomial.polynomial.polyval(d_obs[has_r], poly)

@@ -1,7 +1,8 @@
-"""Levenberg-Marquardt driven from Python: linearise a Python-owned ``Values``, solve, retract, damp.
+"""Levenberg-Marquardt driven from Python over a :class:`casm_graph.graph.Problem`.
 
-GTSAM's stock optimizers copy the whole ``Values`` into Python on every ``CustomFactor`` call;
-driving the iterations here keeps each linearisation one pass over the factors.
+GTSAM's stock optimizers call a ``CustomFactor`` back into Python per factor and copy the whole
+``Values`` each time; here each iteration is one numpy pass to linearise, one GTSAM multifrontal
+solve of the damped linear system, and one numpy pass to evaluate the trial.
 """
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
+
+from .graph import Problem, State
 
 
 @dataclass
@@ -24,38 +27,33 @@ def _damping(keys_dims, lam: float) -> gtsam.GaussianFactorGraph:
     g = gtsam.GaussianFactorGraph()
     s = np.sqrt(lam)
     for key, dim in keys_dims:
-        g.add(gtsam.JacobianFactor(key, s * np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim)))
+        g.add(key, s * np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim))
     return g
 
 
-def least_squares(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, ordering: gtsam.Ordering,
-                  max_iterations: int = 30, rel_tol: float = 1e-6, lam: float = 1e-6,
-                  history: History | None = None, on_iteration=None) -> tuple[gtsam.Values, History]:
-    """Minimise ``graph.error`` from ``values``; returns the new values and the cost history."""
-    hist = history if history is not None else History()
-    zero = values.zeroVectors()
-    keys_dims = [(k, len(zero.at(k))) for k in values.keys()]
-    cost = graph.error(values)
-    if not hist.cost:
-        hist.cost.append(cost)
+def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol: float = 1e-6,
+                  lam: float = 1e-6, on_iteration=None) -> tuple[State, History]:
+    """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history."""
+    hist = History()
+    keys_dims = problem.keys_dims()
+    cost = problem.cost(st)
+    hist.cost.append(cost)
     for _ in range(max_iterations):
-        lin = graph.linearize(values)
+        lin = problem.linearize(st)
         while True:
             system = lin.clone()
-            if lam > 0:
-                system.push_back(_damping(keys_dims, lam))
-            delta = system.optimize(ordering) if ordering is not None else system.optimize()
-            trial = values.retract(delta)
-            new_cost = graph.error(trial)
+            system.push_back(_damping(keys_dims, lam))
+            trial = problem.retract(st, system.optimize())
+            new_cost = problem.cost(trial)
             if np.isfinite(new_cost) and new_cost <= cost:
-                lam = max(lam / 10.0, 1e-9) if lam > 0 else 0.0
+                lam = max(lam / 10.0, 1e-9)
                 break
-            lam = max(lam * 10.0, 1e-6)
+            lam *= 10.0
             if lam > 1e8:
                 hist.converged = True
-                return values, hist
+                return st, hist
         improvement = (cost - new_cost) / max(cost, 1e-300)
-        values, cost = trial, new_cost
+        st, cost = trial, new_cost
         hist.cost.append(cost)
         hist.iterations += 1
         if on_iteration is not None:
@@ -63,5 +61,4 @@ def least_squares(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, order
         if improvement < rel_tol:
             hist.converged = True
             break
-    return values, hist
-
+    return st, hist

@@ -1,45 +1,52 @@
 """Action-table factor: the displacement between two poses equals the action's velocity held for k steps."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .base import register, wrap
 
 
-def displacement(v: np.ndarray, k: int, dt: float):
+def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray):
     """Predicted (dx, dy, dtheta) in the start frame after ``k`` steps of the paper's additive model.
 
     Each step adds R(theta_j) v dt with theta_j = theta_0 + j w dt, so the sum is exact:
-    dt * G(k, w dt) (vx, vy) with G = sum_j R(j w dt). Returns the displacement and d/dv (3x3).
+    dt * G (vx, vy) with G = sum_{j<k} R(j w dt) = a I + b J, (a + i b) a geometric series.
+    Returns (n, 3) displacements and their (n, 3, 3) derivative with respect to v.
     """
-    vx, vy, w = float(v[0]), float(v[1]), float(v[2])
-    phi = w * dt
-    if k == 1:
-        a, b, da, db = 1.0, 0.0, 0.0, 0.0
-    else:
-        j = np.arange(k)
-        c, s = np.cos(j * phi), np.sin(j * phi)
-        a, b, da, db = c.sum(), s.sum(), -(j * s).sum(), (j * c).sum()
-    d = np.array([dt * (a * vx - b * vy), dt * (b * vx + a * vy), k * phi])
-    J = np.array([[dt * a, -dt * b, dt * dt * (da * vx - db * vy)],
-                  [dt * b, dt * a, dt * dt * (db * vx + da * vy)],
-                  [0.0, 0.0, k * dt]])
+    v = np.atleast_2d(np.asarray(v, float))
+    k = np.broadcast_to(np.asarray(k, float), v.shape[:1])
+    dt = np.broadcast_to(np.asarray(dt, float), v.shape[:1])
+    phi = v[:, 2] * dt
+    kmax = int(k.max())
+    j = np.arange(kmax)
+    mask = j[None, :] < k[:, None]
+    ang = j[None, :] * phi[:, None]
+    c, s = np.cos(ang) * mask, np.sin(ang) * mask
+    a, b = c.sum(1), s.sum(1)
+    da, db = -(j * s).sum(1), (j * c).sum(1)          # d/dphi of a and b
+    vx, vy = v[:, 0], v[:, 1]
+    d = np.column_stack([dt * (a * vx - b * vy), dt * (b * vx + a * vy), k * phi])
+    J = np.zeros((len(v), 3, 3))
+    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = dt * a, -dt * b, dt * dt * (da * vx - db * vy)
+    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = dt * b, dt * a, dt * dt * (db * vx + da * vy)
+    J[:, 2, 2] = k * dt
     return d, J
 
 
 @register("action", ("pose", "pose", "vector"))
-def error(a: np.ndarray, b: np.ndarray, v: np.ndarray, k: int, dt: float):
+def error(a: np.ndarray, b: np.ndarray, v: np.ndarray, k: np.ndarray, dt: np.ndarray):
     """Body-frame displacement from pose a to pose b minus the velocity v held for k steps of dt."""
-    ax, ay, ath = a
-    bx, by, bth = b
-    c, s = math.cos(ath), math.sin(ath)
-    ex, ey = bx - ax, by - ay
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
     dx, dy = c * ex + s * ey, -s * ex + c * ey
     pred, Jv = displacement(v, k, dt)
-    e = np.array([dx - pred[0], dy - pred[1], wrap(bth - ath - pred[2])])
-    Ha = np.array([[-1.0, 0.0, dy], [0.0, -1.0, -dx], [0.0, 0.0, -1.0]])
-    cr, sr = math.cos(bth - ath), math.sin(bth - ath)
-    Hb = np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]])
+    e = np.column_stack([dx - pred[:, 0], dy - pred[:, 1], wrap(b[:, 2] - a[:, 2] - pred[:, 2])])
+    n = len(a)
+    Ha = np.zeros((n, 3, 3))
+    Ha[:, 0, 0] = Ha[:, 1, 1] = Ha[:, 2, 2] = -1.0
+    Ha[:, 0, 2], Ha[:, 1, 2] = dy, -dx
+    rel = b[:, 2] - a[:, 2]
+    cr, sr = np.cos(rel), np.sin(rel)
+    Hb = np.zeros((n, 3, 3))
+    Hb[:, 0, 0], Hb[:, 0, 1], Hb[:, 1, 0], Hb[:, 1, 1], Hb[:, 2, 2] = cr, -sr, sr, cr, 1.0
     return e, [Ha, Hb, -Jv]

@@ -1,12 +1,13 @@
-"""The shape every factor follows: a pure error function on arrays, wrapped as a GTSAM factor.
+"""The shape every factor follows: a vectorised error function on arrays, wrapped as a GTSAM factor.
 
-A factor module defines ``error(*variables, *measurement) -> (e, [J_1, ...])`` with analytic
-Jacobians in GTSAM's tangent coordinates (Pose2: body-frame dx, dy, dtheta), and registers it by
-name. ``build`` turns it into a ``gtsam.CustomFactor`` reading its variables from a ``Values``.
+A factor module defines ``error(*variables, *measurements) -> (e, [J_1, ...])`` on batches: each
+argument has a leading dimension n, ``e`` is (n, m) and each ``J_i`` is (n, m, dim_i), analytic, in
+GTSAM's tangent coordinates (Pose2: body-frame dx, dy, dtheta). The batch form linearises a
+whole log in one numpy pass (the hot path); :meth:`FactorKind.build` wraps the same function as
+a ``gtsam.CustomFactor`` for GTSAM's own optimizers, marginals and tests.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -26,27 +27,28 @@ class FactorKind:
     doc: str
 
     def build(self, noise, keys, *measurement) -> gtsam.CustomFactor:
-        """A ``gtsam.CustomFactor`` on ``keys`` with the measurement bound in."""
+        """A ``gtsam.CustomFactor`` on ``keys`` with one measurement bound in."""
         readers = [_READERS[v] for v in self.variables]
         fn = self.error
+        meas = [np.asarray(m, float)[None] for m in measurement]
 
         def callback(this, values, H):
-            xs = [r(values, k) for r, k in zip(readers, keys)]
-            e, jac = fn(*xs, *measurement)
+            xs = [r(values, k)[None] for r, k in zip(readers, keys)]
+            e, jac = fn(*xs, *meas)
             if H is not None:
                 for i, j in enumerate(jac):
-                    H[i] = j
-            return e
+                    H[i] = j[0]
+            return e[0]
 
         return gtsam.CustomFactor(noise, list(keys), callback)
 
 
-def _pose(values, key) -> tuple[float, float, float]:
+def _pose(values, key) -> np.ndarray:
     p = values.atPose2(key)
-    return (p.x(), p.y(), p.theta())
+    return np.array([p.x(), p.y(), p.theta()])
 
 
-_READERS = {"pose": _pose, "vector": lambda values, key: values.atVector(key)}
+_READERS = {"pose": _pose, "vector": lambda values, key: np.asarray(values.atVector(key), float)}
 
 
 def register(name: str, variables: tuple[str, ...]):
@@ -59,7 +61,12 @@ def register(name: str, variables: tuple[str, ...]):
     return deco
 
 
-def wrap(a: float) -> float:
-    """Wrap a scalar angle to (-pi, pi]."""
-    w = (a + math.pi) % (2 * math.pi) - math.pi
-    return math.pi if w == -math.pi else w
+def wrap(a):
+    """Wrap angles to (-pi, pi]."""
+    w = np.mod(np.asarray(a, float) + np.pi, 2 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+def pose_jacobian(gx, gy, cos_th, sin_th) -> np.ndarray:
+    """(n, 2) derivative of a function of world position with gradient (gx, gy) w.r.t. a body-frame step."""
+    return np.stack([gx * cos_th + gy * sin_th, -gx * sin_th + gy * cos_th], axis=-1)
