@@ -85,7 +85,7 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress)
     def tick(c):
         cost.append(c)
         stages.append(label)
-        progress.step(cost=c)
+        progress.step(0, cost=c)
 
     st, h = least_squares(problem, G.state(poses, model), max_iterations=iterations, on_iteration=tick)
     model = model.with_(velocities=st.velocities, reading_poly=st.poly)
@@ -107,17 +107,18 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
 
     lay = G.layout(log, model, stride=COARSE_STRIDE)
     poses = init.poses[lay.knots]
-    progress.stage("coarse graph", COARSE_ROUNDS * COARSE_ITERATIONS)
+    progress.stage("coarse graph", COARSE_ROUNDS)
     for r in range(COARSE_ROUNDS):
         problem, st, model, h = _optimise(log, lay, model, poses, COARSE_ITERATIONS, cost, stages,
                                           "coarse", progress)
         iterations += h.iterations
         poses = st.poses
         model = estimate_noise(problem, st, model, seed=seed + r, relax=COARSE_RELAX)
+        progress.step(1)
 
     full = G.layout(log, model, stride=1)
     poses = fill_in(log, model, lay, poses)
-    progress.stage("full graph", FULL_ROUNDS * FULL_ITERATIONS)
+    progress.stage("full graph", FULL_ROUNDS)
     for r in range(FULL_ROUNDS):
         problem, st, model, h = _optimise(log, full, model, poses, FULL_ITERATIONS, cost, stages,
                                           "full", progress)
@@ -125,6 +126,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         poses = st.poses
         if r < FULL_ROUNDS - 1:
             model = estimate_noise(problem, st, model, seed=seed + 100 + r)
+        progress.step(1)
     converged = h.converged
     final_cost = problem.cost(st)
 
@@ -132,8 +134,11 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     if marginals:
         progress.stage("marginals", None)
         m = gtsam.Marginals(problem.linearize(st), gtsam.VectorValues())
+        cov_xy = np.empty((full.n_poses, 2, 2))
         for i in range(full.n_poses):
-            pose_std[i] = np.sqrt(np.diag(m.marginalCovariance(X(i))))
+            cov = m.marginalCovariance(X(i))
+            pose_std[i] = np.sqrt(np.diag(cov))
+            cov_xy[i] = cov[:2, :2]
         keys = gtsam.KeyVector([V(a) for a in range(full.n_actions)] + [C(0)])
         joint = m.jointMarginalCovariance(keys)
         vstd = np.array([np.sqrt(np.diag(joint.at(V(a), V(a)))) for a in range(full.n_actions)])
@@ -148,4 +153,5 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                              "log_likelihood": ll, "converged": bool(converged)})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
-               notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence})
+               notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
+                      "pose_cov_xy": cov_xy if marginals else None})
