@@ -21,6 +21,7 @@ from gtsam.symbol_shorthand import C, V, X
 from .. import graph as G
 from .. import noise
 from ..initialise import initialise
+from ..turns import realias
 from ..log import Log, wrap
 from ..model import Model
 from ..solve import History, least_squares
@@ -30,6 +31,7 @@ COARSE_STRIDE = 10
 COARSE_ROUNDS = 6
 COARSE_ITERATIONS = 5
 COARSE_RELAX = 1.0
+REALIAS_AFTER = (0, 2)
 FULL_ITERATIONS = 15
 FULL_ROUNDS = 2
 
@@ -99,6 +101,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     progress = progress or Progress()
     t0 = time.perf_counter()
     cost, stages, iterations = [], [], 0
+    realiased: list[int] = []
 
     progress.stage("initialise", None)
     init = initialise(log, start)
@@ -114,6 +117,9 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         iterations += h.iterations
         poses = st.poses
         model = estimate_noise(problem, st, model, seed=seed + r, relax=COARSE_RELAX)
+        if r in REALIAS_AFTER:
+            model, poses, changed = realias(log, lay, model, poses)
+            realiased.extend(changed)
         progress.step(1)
 
     full = G.layout(log, model, stride=1)
@@ -154,4 +160,5 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
-                      "pose_cov_xy": cov_xy if marginals else None})
+                      "pose_cov_xy": cov_xy if marginals else None,
+                      "realiased_actions": realiased})
