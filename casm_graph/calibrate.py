@@ -17,17 +17,6 @@ from .methods import METHODS, Fit, Progress
 from .model import paper_start
 
 
-def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray | None = None) -> np.ndarray:
-    """Map-frame (sx, sy, stheta) from GTSAM's Pose2 marginals, which live in the body frame."""
-    if body_cov_xy is None:
-        body_cov_xy = np.zeros((len(poses), 2, 2))
-        body_cov_xy[:, 0, 0], body_cov_xy[:, 1, 1] = body_std[:, 0] ** 2, body_std[:, 1] ** 2
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    cov = R @ body_cov_xy @ np.transpose(R, (0, 2, 1))
-    return np.column_stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), body_std[:, 2]])
-
-
 def write_trajectory(path: Path, t: np.ndarray, poses: np.ndarray, std: np.ndarray) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
@@ -64,7 +53,6 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     fit.model.save(out / "model.json")
-    std = world_std(fit.poses, fit.pose_std, fit.notes.get("pose_cov_xy"))
-    write_trajectory(out / "trajectory.csv", log.pose_times, fit.poses, std)
-    report.calibration(out / "report.html", log, fit, std, read_truth_model(Path(log_dir)))
+    write_trajectory(out / "trajectory.csv", log.pose_times, fit.poses, fit.pose_std)
+    report.calibration(out / "report.html", log, fit, fit.pose_std, read_truth_model(Path(log_dir)))
     return log, fit

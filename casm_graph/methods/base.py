@@ -16,7 +16,7 @@ class Fit:
 
     model: Model
     poses: np.ndarray                 # (T+1, 3)
-    pose_std: np.ndarray              # (T+1, 3) marginal std of x, y, theta (NaN when unknown)
+    pose_std: np.ndarray              # (T+1, 3) marginal std of x, y (map frame), theta; NaN when unknown
     cost: list[float] = field(default_factory=list)     # objective after each iteration
     stages: list[str] = field(default_factory=list)     # stage name of each cost entry
     iterations: int = 0

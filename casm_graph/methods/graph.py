@@ -31,7 +31,7 @@ COARSE_STRIDE = 10
 COARSE_ROUNDS = 6
 COARSE_ITERATIONS = 5
 COARSE_RELAX = 1.0
-REALIAS_AFTER = (0, 2)
+REALIAS_AFTER = (2, 4)
 FULL_ITERATIONS = 15
 FULL_ROUNDS = 2
 
@@ -94,6 +94,14 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress)
     return problem, st, model, h
 
 
+def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) -> np.ndarray:
+    """Map-frame (sx, sy, stheta) from GTSAM's Pose2 marginals, which live in the body frame."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    cov = R @ body_cov_xy @ np.transpose(R, (0, 2, 1))
+    return np.column_stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), body_std[:, 2]])
+
+
 @register("graph")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         marginals: bool = True) -> Fit:
@@ -150,6 +158,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         vstd = np.array([np.sqrt(np.diag(joint.at(V(a), V(a)))) for a in range(full.n_actions)])
         cstd = np.sqrt(np.diag(joint.at(C(0), C(0))))
         model = model.with_(velocity_std=vstd, reading_poly_std=cstd)
+        pose_std = world_std(poses, pose_std, cov_xy)
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)
     d = d[~np.isnan(log.obs_reading)]
     ll = log_likelihood(final_cost, full, log, model)
@@ -160,5 +169,4 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
-                      "pose_cov_xy": cov_xy if marginals else None,
                       "realiased_actions": realiased})
