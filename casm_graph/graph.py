@@ -144,14 +144,20 @@ class Problem:
         return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.reading_e ** 2) + np.sum(r.bearing_e ** 2)
                            + np.sum(r.prior_e ** 2))
 
-    def linearize(self, st: State) -> gtsam.GaussianFactorGraph:
-        """Gauss-Newton system at ``st``: one factor per action segment and per knot with sightings."""
+    def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
+        """Gauss-Newton system at ``st``: one factor per action segment and per knot with sightings.
+
+        ``poses_only`` holds the table and polynomial fixed (their columns and priors left out).
+        """
         r = self.rows(st)
         lay, unit3 = self.lay, gtsam.noiseModel.Unit.Create(3)
         g = gtsam.GaussianFactorGraph()
         Ha, Hb, Hv = r.action_J
         for i in range(lay.n_poses - 1):
-            g.add(X(i), Ha[i], X(i + 1), Hb[i], V(int(lay.seg_action[i])), Hv[i], -r.action_e[i], unit3)
+            if poses_only:
+                g.add(X(i), Ha[i], X(i + 1), Hb[i], -r.action_e[i], unit3)
+            else:
+                g.add(X(i), Ha[i], X(i + 1), Hb[i], V(int(lay.seg_action[i])), Hv[i], -r.action_e[i], unit3)
         D = self.n_poly
         knot = np.concatenate([self.r_knot, self.b_knot])
         Jp = np.concatenate([r.reading_J[0], r.bearing_J])
@@ -161,8 +167,13 @@ class Problem:
         knot, Jp, Jc, e = knot[order], Jp[order], Jc[order], e[order]
         cuts = np.flatnonzero(np.diff(knot)) + 1
         for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
-            g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1],
-                  gtsam.noiseModel.Unit.Create(int(s1 - s0)))
+            noise = gtsam.noiseModel.Unit.Create(int(s1 - s0))
+            if poses_only:
+                g.add(X(int(knot[s0])), Jp[s0:s1], -e[s0:s1], noise)
+            else:
+                g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1], noise)
+        if poses_only:
+            return g
         eye3 = np.eye(3) / VELOCITY_PRIOR_SIGMA
         for a in range(lay.n_actions):
             g.add(V(a), eye3, -r.prior_e[3 * a:3 * a + 3], unit3)
@@ -177,6 +188,8 @@ class Problem:
         c, s = np.cos(th), np.sin(th)
         poses = np.column_stack([st.poses[:, 0] + c * d[:, 0] - s * d[:, 1],
                                  st.poses[:, 1] + s * d[:, 0] + c * d[:, 1], wrap(th + d[:, 2])])
+        if not delta.exists(C(0)):
+            return State(poses, st.velocities, st.poly)
         vel = st.velocities + np.array([delta.at(V(a)) for a in range(self.lay.n_actions)])
         return State(poses, vel, st.poly + np.asarray(delta.at(C(0))))
 

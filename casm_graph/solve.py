@@ -32,14 +32,19 @@ def _damping(keys_dims, lam: float) -> gtsam.GaussianFactorGraph:
 
 
 def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol: float = 1e-6,
-                  lam: float = 1e-6, on_iteration=None) -> tuple[State, History]:
-    """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history."""
+                  lam: float = 1e-6, on_iteration=None, freeze_parameters: bool = False) -> tuple[State, History]:
+    """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history.
+
+    ``freeze_parameters`` holds the velocity table and polynomial where they are (poses only).
+    """
     hist = History()
     keys_dims = problem.keys_dims()
+    if freeze_parameters:
+        keys_dims = keys_dims[:problem.lay.n_poses]
     cost = problem.cost(st)
     hist.cost.append(cost)
     for _ in range(max_iterations):
-        lin = problem.linearize(st)
+        lin = problem.linearize(st, poses_only=freeze_parameters)
         while True:
             system = lin.clone()
             system.push_back(_damping(keys_dims, lam))

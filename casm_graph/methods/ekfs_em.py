@@ -42,7 +42,8 @@ def velocity_errors(model: Model, truth: dict | None) -> np.ndarray | None:
 
 @register("ekfs-em")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-        max_iterations: int = MAX_ITERATIONS, patience: int = PATIENCE, truth: dict | None = None) -> Fit:
+        max_iterations: int = MAX_ITERATIONS, patience: int = PATIENCE, truth: dict | None = None,
+        start_pose: tuple | None = None) -> Fit:
     """Calibrate ``log`` with EKFS-EM from the paper's start; ``truth`` only records errors per iteration."""
     progress = progress or Progress()
     t0 = time.perf_counter()
@@ -54,8 +55,11 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     vel = start.velocities.copy()
     poly = np.asarray(start.reading_poly, float).copy()
     s_r, s_b = float(start.reading_sigma), float(start.bearing_sigma)
-    mu0 = np.array([*log.landmark_xy.mean(0), 0.0])
-    P0 = np.diag(np.square(PRIOR_STD))
+    if start_pose is None:
+        mu0 = np.array([*log.landmark_xy.mean(0), 0.0])
+        P0 = np.diag(np.square(PRIOR_STD))
+    else:
+        mu0, P0 = np.asarray(start_pose[0], float), np.asarray(start_pose[1], float)
     use = np.ones(len(z_r), bool)
     deg = len(poly) - 1
     counts = np.bincount(act, minlength=len(vel))

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -102,20 +103,28 @@ def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) 
     return np.column_stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), body_std[:, 2]])
 
 
-@register("graph")
-def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-        marginals: bool = True) -> Fit:
-    """Calibrate ``log`` from the paper's start ``start`` with the factor graph."""
+@dataclass
+class Coarse:
+    """The global start settled on a coarse graph: model, poses at every step, and how it got there."""
+
+    model: Model
+    poses: np.ndarray
+    cost: list
+    stages: list
+    iterations: int
+    realiased: list
+    init: object
+
+
+def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None) -> Coarse:
+    """Stages 1-3 of the module docstring: global initialisation, then the coarse graph in rounds."""
     progress = progress or Progress()
-    t0 = time.perf_counter()
     cost, stages, iterations = [], [], 0
     realiased: list[int] = []
-
     progress.stage("initialise", None)
     init = initialise(log, start)
     model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float),
-                           bearing_sigma=float(start.bearing_sigma))
-
+                             bearing_sigma=float(start.bearing_sigma))
     lay = G.layout(log, model, stride=COARSE_STRIDE)
     poses = init.poses[lay.knots]
     progress.stage("coarse graph", COARSE_ROUNDS)
@@ -129,9 +138,20 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
             model, poses, changed = realias(log, lay, model, poses)
             realiased.extend(changed)
         progress.step(1)
+    return Coarse(model, fill_in(log, model, lay, poses), cost, stages, iterations, realiased, init)
+
+
+@register("graph")
+def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
+        marginals: bool = True) -> Fit:
+    """Calibrate ``log`` from the paper's start ``start`` with the factor graph."""
+    progress = progress or Progress()
+    t0 = time.perf_counter()
+    co = coarse_start(log, start, seed, progress)
+    model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
+    realiased, init = co.realiased, co.init
 
     full = G.layout(log, model, stride=1)
-    poses = fill_in(log, model, lay, poses)
     progress.stage("full graph", FULL_ROUNDS)
     for r in range(FULL_ROUNDS):
         problem, st, model, h = _optimise(log, full, model, poses, FULL_ITERATIONS, cost, stages,
