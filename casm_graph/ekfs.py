@@ -183,11 +183,28 @@ def smooth(mu_a, P_a, Lb, eb):
 
 
 @njit(cache=True)
+def _d_and_L(z):
+    """d(s, s') = (R(-theta)(p' - p), theta' - theta) at z = (s, s') and its 3x6 Jacobian."""
+    c, s = math.cos(z[2]), math.sin(z[2])
+    dx, dy = z[3] - z[0], z[4] - z[1]
+    d = np.array([c * dx + s * dy, -s * dx + c * dy, z[5] - z[2]])
+    L = np.zeros((3, 6))
+    L[0, 0], L[0, 1], L[0, 2] = -c, -s, -s * dx + c * dy
+    L[1, 0], L[1, 1], L[1, 2] = s, -c, -c * dx - s * dy
+    L[2, 2] = -1.0
+    L[0, 3], L[0, 4] = c, s
+    L[1, 3], L[1, 4] = -s, c
+    L[2, 5] = 1.0
+    return d, L
+
+
+@njit(cache=True)
 def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, eps):
     """E[d(s_k, s_{k+1})] per step under alpha_k(s_k) delta_{k+1}(s_{k+1}) f_A(d) (paper eq. 6).
 
     f_A has the previous iteration's per-step mean ``u_prev[k]`` and covariance diag(act_sig^2);
-    a direction delta knows nothing about gets information ``eps`` (a very wide prior).
+    a direction delta knows nothing about gets information ``eps`` (a very wide prior). As in the
+    paper, d is linearised once, at the means of alpha and delta.
     """
     n = u_prev.shape[0]
     out = np.empty((n, 3))
@@ -198,20 +215,12 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, eps):
         Pd = _inv3(Ld[k + 1] + eps * I3)
         b = Pd @ (ed[k + 1] + eps * a)    # delta's mean, pulled weakly towards a where unknown
         b[2] = a[2] + _wrap(b[2] - a[2])
-        c, s = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        dm = np.array([c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]])
-        L = np.zeros((3, 6))
-        L[0, 0], L[0, 1], L[0, 2] = -c, -s, -s * dx + c * dy
-        L[1, 0], L[1, 1], L[1, 2] = s, -c, -c * dx - s * dy
-        L[2, 2] = -1.0
-        L[0, 3], L[0, 4] = c, s
-        L[1, 3], L[1, 4] = -s, c
-        L[2, 5] = 1.0
+        mu = np.concatenate((a, b))
         S = np.zeros((6, 6))
         S[:3, :3] = P_a[k]
         S[3:, 3:] = Pd
+        d, L = _d_and_L(mu)
         Pdd = L @ S @ L.T
         Pinv = np.linalg.inv(Pdd)
-        out[k] = np.linalg.solve(Pinv + SA_inv, Pinv @ dm + SA_inv @ u_prev[k])
+        out[k] = np.linalg.solve(Pinv + SA_inv, Pinv @ d + SA_inv @ u_prev[k])
     return out

@@ -1,0 +1,85 @@
+"""The pieces of the two EM methods, each against an independent computation."""
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+
+from casm_graph import chain, ekfs
+from casm_graph import graph as G
+from casm_graph.methods.ekfs_em import _observations
+from casm_graph.methods.graph_em import expected_displacement, gaussian_moments
+from casm_graph.model import paper_start
+from casm_graph.simulate import SimConfig, simulate
+
+
+@pytest.fixture(scope="module")
+def true_case():
+    log, truth = simulate(SimConfig(minutes=2, seed=5))
+    m = paper_start(log)
+    tv = np.array([truth["action_model"]["velocities"][str(a)] for a in m.action_ids])
+    m = m.with_(velocities=tv, reading_poly=np.array(truth["sensor_model"]["reading_poly_best_cubic"]),
+                reading_sigma=1.0, bearing_sigma=0.5, motion_noise=np.array([0.002, 0.002, 0.004]))
+    return log, m
+
+
+def test_chain_marginals_equal_gtsam(true_case):
+    log, m = true_case
+    lay = G.layout(log, m, 1)
+    problem = G.Problem(log, lay, m)
+    st = G.state(log.truth[:, 1:], m)
+    cov, cross, logdet = chain.select_inverse(*chain.information_blocks(problem, st))
+    lin = problem.linearize(st, poses_only=True)
+    mg = gtsam.Marginals(lin, gtsam.VectorValues())
+    for i in (0, 1234, lay.n_poses - 1):
+        np.testing.assert_allclose(cov[i], mg.marginalCovariance(X(i)), rtol=1e-8, atol=1e-14)
+    for i in (0, 777):
+        J = mg.jointMarginalCovariance(gtsam.KeyVector([X(i), X(i + 1)])).fullMatrix()
+        np.testing.assert_allclose(cross[i], J[:3, 3:], rtol=1e-8, atol=1e-14)
+    H = lin.hessian()[0]
+    assert logdet == pytest.approx(np.linalg.slogdet(H)[1], rel=1e-9)
+
+
+def test_gaussian_moments_and_expected_displacement_match_sampling():
+    rng = np.random.default_rng(0)
+    mom = gaussian_moments(np.array([2.0]), np.array([0.09]), 6)[0]
+    s = rng.normal(2.0, 0.3, 400_000)
+    np.testing.assert_allclose(mom, [np.mean(s ** k) for k in range(7)], rtol=3e-3)
+    poses = np.array([[0.3, -0.2, 0.7], [0.35, -0.15, 0.9]])
+    A = rng.normal(0, 1, (6, 6))
+    S = A @ A.T * 0.01
+    W = np.stack([S[:3, :3], S[3:, 3:]])
+    Xc = S[:3, 3:][None]
+    Ed, _ = expected_displacement(poses, W, Xc)
+    z = rng.multivariate_normal(poses.ravel(), S, 400_000)
+    a, b = z[:, :3], z[:, 3:]
+    c, sn = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    mc = np.array([np.mean(c * dx + sn * dy), np.mean(-sn * dx + c * dy), np.mean(b[:, 2] - a[:, 2])])
+    np.testing.assert_allclose(Ed[0], mc, atol=1.5e-3)
+
+
+def test_ekfs_smoother_with_the_true_model(true_case):
+    log, m = true_case
+    order, ptr, lm, zr, zb = _observations(log)
+    act = np.searchsorted(m.action_ids, log.action)
+    u = m.velocities[act] * log.dt[:, None]
+    sig = np.array([0.01, 0.01, 0.1])
+    use = np.ones(len(zr), bool)
+    mu0, P0 = log.truth[0, 1:].copy(), np.diag([0.01, 0.01, 0.01])
+    mu_a, P_a, ll, _ = ekfs.forward(mu0, P0, u, sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)
+    Lb, eb, Ld, ed = ekfs.backward(mu_a, u, sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)
+    mu_g, P_g = ekfs.smooth(mu_a, P_a, Lb, eb)
+    tr = log.truth[:, 1:]
+    err_f = np.sqrt(np.mean(np.sum((mu_a[:, :2] - tr[:, :2]) ** 2, 1)))
+    err_s = np.sqrt(np.mean(np.sum((mu_g[:, :2] - tr[:, :2]) ** 2, 1)))
+    assert err_s < 0.1 and err_s < err_f                       # smoothing beats filtering
+    z = (mu_g[:, :2] - tr[:, :2]) / np.sqrt(np.stack([P_g[:, 0, 0], P_g[:, 1, 1]], 1))
+    assert 0.4 < z.std() < 1.5                                 # covariances of the right size
+    _, _, ll_bad, _ = ekfs.forward(mu0, P0, u * 0.5, sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)
+    assert ll > ll_bad + 100                                   # p(O | lambda) prefers the truth
+    d = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig, 1e-8)
+    vel = np.zeros_like(m.velocities)
+    np.add.at(vel, act, d / log.dt[:, None])
+    vel /= np.bincount(act, minlength=len(vel))[:, None]
+    rms = np.sqrt(np.mean((vel - m.velocities) ** 2, axis=0))
+    assert np.all(rms < [0.03, 0.03, 0.2])                     # eq. 6 at the truth stays near the truth
