@@ -6,6 +6,12 @@ over its steps of E[d(s_t, s_t+1)] under the pairwise posterior (paper eq. 6); t
 a regression on one sample per sighting from gamma_t; the sigmas are the sampled expected squared
 residuals. First-iteration outliers are pruned by their innovation; it stops when ``patience``
 iterations pass without a new best likelihood and returns the best model seen.
+
+The paper does not say what it knew of the first pose (pi). A vague pi (the map's centre, heading
+unknown) lets the EKF lock onto a wrong heading on some logs, so pi is centred on the first pose
+of the log-only global initialiser (:mod:`casm_graph.initialise`) with a wide ``START_STD``; the
+table and the sensor model still start from nothing, as in the paper, and pi is re-estimated
+every iteration (its M-step is the smoothed first pose).
 """
 from __future__ import annotations
 
@@ -14,6 +20,7 @@ import time
 import numpy as np
 
 from .. import ekfs
+from ..initialise import initialise
 from ..log import Log, wrap
 from ..model import Model
 from .base import Fit, Progress, register
@@ -21,7 +28,7 @@ from .base import Fit, Progress, register
 OUTLIER_M2 = 13.8          # chi-square, 2 dof, 0.999: an innovation this unlikely is pruned
 PATIENCE = 50
 MAX_ITERATIONS = 1500
-PRIOR_STD = (1.5, 1.5, np.pi)   # the start pose is unknown: the map's centre, very wide
+START_STD = (0.5, 0.5, 0.5)     # prior std of the first pose around the log-only initialiser's guess
 EPS_INFO = 1e-8
 
 
@@ -56,8 +63,9 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     poly = np.asarray(start.reading_poly, float).copy()
     s_r, s_b = float(start.reading_sigma), float(start.bearing_sigma)
     if start_pose is None:
-        mu0 = np.array([*log.landmark_xy.mean(0), 0.0])
-        P0 = np.diag(np.square(PRIOR_STD))
+        progress.stage("start pose", None)
+        mu0 = initialise(log, start).poses[0]
+        P0 = np.diag(np.square(START_STD))
     else:
         mu0, P0 = np.asarray(start_pose[0], float), np.asarray(start_pose[1], float)
     use = np.ones(len(z_r), bool)

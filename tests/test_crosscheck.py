@@ -1,0 +1,49 @@
+"""graph, graph-em and ekfs-em on one shared 8-minute log: they agree, and each is near the paper's errors.
+
+Runs at full size in CI (about three minutes): an 8-minute log is already the reduced protocol.
+"""
+import numpy as np
+import pytest
+
+from casm_graph.methods import METHODS
+from casm_graph.model import paper_start
+from casm_graph.simulate import SimConfig, simulate
+
+PAPER_SIM_RMS = np.array([0.02306, 0.01834, 0.086])
+
+
+@pytest.fixture(scope="module")
+def shared():
+    log, truth = simulate(SimConfig(minutes=8, seed=1))
+    fits = {name: METHODS[name](log, paper_start(log), seed=1, **({"truth": truth} if name != "graph" else {}))
+            for name in ("graph", "graph-em", "ekfs-em")}
+    tv = np.array([truth["action_model"]["velocities"][str(a)] for a in log.action_ids])
+    return log, truth, tv, fits
+
+
+@pytest.mark.science
+def test_each_method_within_one_and_a_half_times_the_paper(shared):
+    _, _, tv, fits = shared
+    for name, f in fits.items():
+        rms = np.sqrt(np.mean((f.model.velocities - tv) ** 2, axis=0))
+        assert np.all(rms < 1.5 * PAPER_SIM_RMS), f"{name}: {rms}"
+
+
+@pytest.mark.science
+def test_methods_agree(shared):
+    _, _, _, fits = shared
+    names = list(fits)
+    for i in range(3):
+        for j in range(i + 1, 3):
+            d = np.sqrt(np.mean((fits[names[i]].model.velocities - fits[names[j]].model.velocities) ** 2, axis=0))
+            assert np.all(d[:2] < 0.020), f"{names[i]} vs {names[j]}: {d}"
+
+
+@pytest.mark.science
+def test_ekfs_likelihood_rises_until_approximation_noise(shared):
+    ll = np.array(shared[3]["ekfs-em"].notes["history"]["log_likelihood"])
+    gain = ll.max() - ll[0]
+    i95 = int(np.argmax(ll >= ll[0] + 0.95 * gain))
+    drops = -np.diff(ll[:i95 + 1])
+    assert gain > 0 and (drops.max(initial=0.0) < 0.05 * gain), f"largest early drop {drops.max()} of gain {gain}"
+    assert shared[3]["ekfs-em"].converged                     # 50 iterations without a new best
