@@ -51,3 +51,44 @@ def select_inverse(D, B):
         cov[i] = Sinv[i] + G @ cov[i + 1] @ G.T
         cov[i] = 0.5 * (cov[i] + cov[i].T)
     return cov, cross, logdet
+
+
+@njit(cache=True)
+def _chain_solve(D, B, R, lam):
+    """H^-1 R for the block-tridiagonal H = blocks (D + lam I, B) and many right-hand sides R (K, 3, m)."""
+    K = D.shape[0]
+    Sinv = np.empty_like(D)
+    Y = np.empty_like(R)
+    eye = np.eye(3) * lam
+    for i in range(K):
+        S = D[i] + eye
+        Y[i] = R[i]
+        if i > 0:
+            G = np.ascontiguousarray(B[i - 1].T) @ Sinv[i - 1]
+            S = S - G @ B[i - 1]
+            Y[i] = Y[i] - G @ Y[i - 1]
+        Sinv[i] = np.linalg.inv(S)
+    Xs = np.empty_like(R)
+    Xs[K - 1] = Sinv[K - 1] @ Y[K - 1]
+    for i in range(K - 2, -1, -1):
+        Xs[i] = Sinv[i] @ (Y[i] - B[i] @ Xs[i + 1])
+    return Xs
+
+
+def solve_arrow(D, B, F, gp, Htt, gt, lam):
+    """Solve [[Hpp + lam I, F], [F^T, Htt + lam I]] [dp; dt] = -[gp; gt] with Hpp block tridiagonal.
+
+    ``D`` (K,3,3) and ``B`` (K-1,3,3) are Hpp's blocks, ``F`` (K,3,n) the pose-parameter coupling.
+    Eliminates the pose chain first (as GTSAM does with the parameters ordered last), then solves
+    the dense Schur complement on the parameters.
+    """
+    K, n = D.shape[0], F.shape[2]
+    R = np.concatenate([gp[:, :, None], F], axis=2)
+    Xs = _chain_solve(D, B, np.ascontiguousarray(R), lam)
+    if n == 0:
+        return -Xs[:, :, 0], np.zeros(0)
+    Ff, Xf = F.reshape(-1, n), Xs.reshape(-1, n + 1)
+    Sc = Htt + lam * np.eye(n) - Ff.T @ Xf[:, 1:]
+    dt = -np.linalg.solve(Sc, gt - Ff.T @ Xf[:, 0])
+    dp = -(Xs[:, :, 0] + Xs[:, :, 1:] @ dt)
+    return dp, dt

@@ -102,12 +102,15 @@ def _choose(pose, table, counts, n, dt, margin, rng) -> int:
 
 def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     """Run the protocol; return the log (with truth) and the truth model as a JSON-ready dict."""
-    if cfg.effects:
-        name = next(iter(cfg.effects))
-        raise LogError(f"unknown effect '{name}' (the effect catalog is empty in this version)")
+    from .effects import get as get_effect
+    effects = [get_effect(name)() for name in cfg.effects]      # unknown names fail before any work
     if cfg.minutes <= 0:
         raise LogError(f"--minutes must be positive (got {cfg.minutes:g})")
     rng = np.random.default_rng(cfg.seed)
+    eff_rng = np.random.default_rng([cfg.seed, 7])              # a separate stream: effects leave the rest alone
+    thetas = [e.simulate_params(float(cfg.effects[e.name]), eff_rng) for e in effects]
+    motion = [(e, th) for e, th in zip(effects, thetas) if e.channel == "motion"]
+    sensor = [(e, th) for e, th in zip(effects, thetas) if e.channel == "sensor"]
     table = true_table(rng)
     dt = 1.0 / cfg.rate
     steps = int(round(cfg.minutes * 60 * cfg.rate))
@@ -120,23 +123,42 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     actions = np.empty(steps, dtype=np.int64)
     counts = np.zeros(len(table), int)
     noise = rng.normal(0.0, cfg.motion_noise, size=(steps, 3))
+    v_true = np.empty((steps, 3))
+    prev = None
     for k0 in range(0, steps, per_seg):
         n = min(per_seg, steps - k0)
         a = _choose(poses[k0], table, counts, n, dt, cfg.margin, rng)
         counts[a] += 1
         actions[k0:k0 + n] = a
+        v_prev = table[a if prev is None or prev == a else prev]
+        prev = a
         for k in range(k0, k0 + n):
             x, y, th = poses[k]
-            d = table[a] * dt + noise[k]
+            v = table[a][None]
+            ctx = {"t": np.array([k * dt]), "pose": poses[k][None], "since": np.array([(k - k0) * dt]),
+                   "dt": np.array([dt]), "v_prev": v_prev[None]}
+            for e, theta in motion:
+                v = e.velocity(theta, v, ctx)
+            v_true[k] = v[0]
+            d = v[0] * dt + noise[k]
             c, s = np.cos(th), np.sin(th)
             poses[k + 1] = (x + c * d[0] - s * d[1], y + s * d[0] + c * d[1], th + d[2])
 
     t = np.arange(steps) * dt
     frame_t = np.arange(steps + 1) * dt
     pan = cfg.pan_amplitude * np.sin(2 * np.pi * frame_t / cfg.pan_period + rng.uniform(0, 2 * np.pi))
-    rel = BEACONS[None, :, :] - poses[:, None, :2]
+    frame_v = v_true[np.clip(np.arange(steps + 1) - 1, 0, steps - 1)]
+    rel = np.empty((steps + 1, len(BEACONS), 2))
+    heading = np.empty((steps + 1, len(BEACONS)))
+    for j in range(len(BEACONS)):          # where each beacon really is, seen from where the camera really was
+        ctx = {"t": frame_t, "landmark": np.full(steps + 1, j), "pan": pan, "velocity": frame_v}
+        p, lm = poses, np.repeat(BEACONS[j][None], steps + 1, 0)
+        for e, theta in sensor:
+            p, lm = e.geometry(theta, p, lm, ctx)
+        rel[:, j] = lm - p[:, :2]
+        heading[:, j] = p[:, 2]
     dist = np.hypot(rel[..., 0], rel[..., 1])
-    bearing = wrap(np.arctan2(rel[..., 1], rel[..., 0]) - poses[:, 2:3])
+    bearing = wrap(np.arctan2(rel[..., 1], rel[..., 0]) - heading)
     image = np.abs(wrap(bearing - pan[:, None]))
     visible = (image < cam.half_fov) & (dist >= cam.min_range) & (dist <= cam.max_range)
     image = np.where(visible, image, np.inf)
@@ -144,8 +166,21 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     frames = np.flatnonzero(seen)
     which = np.argmin(image[frames], axis=1)
     d_seen = dist[frames, which]
-    reading = cam.reading(d_seen) + rng.normal(0, cfg.reading_sigma, len(frames))
+    ctx = {"t": frame_t[frames], "landmark": which, "pan": pan[frames], "velocity": frame_v[frames],
+           "pose": poses[frames], "distance": d_seen, "bearing": bearing[frames, which],
+           "image_angle": wrap(bearing[frames, which] - pan[frames])}
+    clean = cam.reading(d_seen)
+    scale = np.ones(len(frames))
+    for e, theta in sensor:
+        clean = e.reading(theta, clean, ctx)
+        scale = scale * e.reading_scale(theta, d_seen, ctx)
+    reading = clean + rng.normal(0, cfg.reading_sigma, len(frames)) * scale
     obs_bearing = wrap(bearing[frames, which] + rng.normal(0, cfg.bearing_sigma, len(frames)))
+    obs = {"landmark": which.astype(np.int64), "reading": reading, "bearing": obs_bearing,
+           "n_landmarks": len(BEACONS)}
+    for e, theta in sensor:
+        obs = e.corrupt(theta, obs, eff_rng)
+    which, reading, obs_bearing = obs["landmark"], obs["reading"], obs["bearing"]
 
     poses[:, 2] = wrap(poses[:, 2])
     att = attempted_table()
@@ -171,7 +206,7 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
             "reading_poly_best_cubic": np.polynomial.polynomial.polyfit(
                 d_grid, cam.reading(d_grid), 3).tolist(),
         },
-        "effects": {},
+        "effects": {e.name: e.describe(th) for e, th in zip(effects, thetas)},
         "simulation": {k: v for k, v in asdict(cfg).items() if k != "camera"},
     }
     return log, truth

@@ -36,6 +36,8 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
     """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history.
 
     ``freeze_parameters`` holds the velocity table and polynomial where they are (poses only).
+    A problem with ``normal_equations``/``solve_damped`` (the effect graph, whose parameters form one
+    dense block) is solved by its own pose-chain elimination; otherwise GTSAM solves the linear graph.
     """
     hist = History()
     keys_dims = problem.keys_dims()
@@ -43,12 +45,19 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
         keys_dims = keys_dims[:problem.lay.n_poses]
     cost = problem.cost(st)
     hist.cost.append(cost)
+    direct = hasattr(problem, "solve_damped")
     for _ in range(max_iterations):
-        lin = problem.linearize(st, poses_only=freeze_parameters)
+        if direct:
+            neq = problem.normal_equations(st, poses_only=freeze_parameters)
+        else:
+            lin = problem.linearize(st, poses_only=freeze_parameters)
         while True:
-            system = lin.clone()
-            system.push_back(_damping(keys_dims, lam))
-            trial = problem.retract(st, system.optimize())
+            if direct:
+                trial = problem.retract(st, problem.solve_damped(neq, lam))
+            else:
+                system = lin.clone()
+                system.push_back(_damping(keys_dims, lam))
+                trial = problem.retract(st, system.optimize())
             new_cost = problem.cost(trial)
             if np.isfinite(new_cost) and new_cost <= cost:
                 lam = max(lam / 10.0, 1e-9)
