@@ -459,3 +459,20 @@ def estimate_noise(problem: EffectProblem, st: AState, model: Model, seed: int =
                    "bearing_sigma": m.bearing_sigma}
             theta[s] = eff.estimate_noise(theta[s], z_r, z_b, t["distance"], ctx)
     return m, theta
+
+
+def marginals(problem: EffectProblem, st: AState) -> tuple[np.ndarray, np.ndarray]:
+    """Pose covariances (K, 3, 3) and the parameter covariance (n_theta, n_theta) at ``st``.
+
+    The parameter block is the inverse Schur complement of the pose chain (the exact marginal of
+    the Gaussian approximation); each pose's covariance adds the parameters' share to its
+    conditional covariance from the chain.
+    """
+    D, B, F, gp, Htt, gt = problem.normal_equations(st)
+    K, n = D.shape[0], F.shape[2]
+    Xs = chain._chain_solve(D, B, np.ascontiguousarray(F), 0.0)           # Hpp^-1 F
+    Ff, Xf = F.reshape(-1, n), Xs.reshape(-1, n)
+    cov_t = np.linalg.inv(Htt - Ff.T @ Xf)
+    cond, _, _ = chain.select_inverse(D, B)
+    cov_p = cond + np.einsum("kin,nm,kjm->kij", Xs, cov_t, Xs)
+    return cov_p, cov_t

@@ -77,6 +77,37 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _diagnose(args) -> int:
+    from .diagnose_run import run
+    bar = Bar(enabled=not args.quiet)
+    try:
+        diag = run(args.log, args.model, args.out, workers=args.workers, progress=bar)
+    finally:
+        bar.close()
+    print(f"verdict: {diag.verdict}  ({diag.seconds:.0f} s)")
+    for w in diag.words:
+        print("  " + w)
+    print(f"  wrote {args.out}/diagnosis.json, report.html")
+    return 0
+
+
+def _effects(args) -> int:
+    from .effects import catalog
+    for c in catalog():
+        print(f"{c['name']:<22} {c['channel']:<7} {', '.join(c['parameters'])}")
+        print(f"{'':<30}{c['physics']}")
+    return 0
+
+
+def _compare(args) -> int:
+    from .compare import run
+    res = run(args.model, args.measured, args.out)
+    for line in res["summary"]:
+        print(line)
+    print(f"  wrote {args.out}/comparison.json, report.html")
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="casm-graph", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -97,6 +128,20 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)
+    d = sub.add_parser("diagnose", help="where the model fails and which effect is missing")
+    d.add_argument("log")
+    d.add_argument("--model", required=True, help="RUN/model.json (RUN/trajectory.csv is used as the start when present)")
+    d.add_argument("--out", required=True)
+    d.add_argument("--workers", type=int, default=2, help="processes fitting candidates in parallel")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=_diagnose)
+    e = sub.add_parser("effects", help="list the effect catalog")
+    e.set_defaults(func=_effects)
+    k = sub.add_parser("compare", help="the learned model against independently measured tables")
+    k.add_argument("model")
+    k.add_argument("--measured", required=True, help="directory with sensor.csv and/or actions.csv")
+    k.add_argument("--out", default="compare")
+    k.set_defaults(func=_compare)
     return p
 
 

@@ -156,3 +156,132 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
             "<h2>Action table</h2>", velocity_table(fit, truth)]
     path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph calibration</title>"
                     f"<style>{STYLE}</style></head><body>{''.join(body)}</body></html>")
+
+
+# ----------------------------------------------------------------------------- diagnosis
+def _binned(x, y, bins=12):
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    g = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+    n = np.bincount(g, minlength=len(edges) - 1)
+    ok = n > 1
+    m = np.bincount(g, weights=y, minlength=len(n))[ok] / n[ok]
+    v = np.bincount(g, weights=y * y, minlength=len(n))[ok] / n[ok] - m ** 2
+    c = 0.5 * (edges[:-1] + edges[1:])[ok]
+    return c, m, 2 * np.sqrt(np.maximum(v, 0) / n[ok])
+
+
+def covariate_panels(diag, top: int = 6):
+    """The strongest residual-covariate dependences: residuals, binned means and their 2-SE bars."""
+    pairs = [(ch, c) for ch, r in diag.channels.items() for c in r["covariates"]]
+    pairs.sort(key=lambda p: -p[1]["strength"])
+    pairs = pairs[:top]
+    fig, axes = plt.subplots(int(np.ceil(len(pairs) / 3)) or 1, 3, figsize=(13, 3.4 * max(1, int(np.ceil(len(pairs) / 3)))),
+                             squeeze=False)
+    rng = np.random.default_rng(0)
+    for ax, (ch, c) in zip(axes.ravel(), pairs):
+        data = diag.residuals[ch]
+        x, y = data.covariates[c["name"]], data.residual
+        ok = np.isfinite(x) & np.isfinite(y)
+        x, y = x[ok], y[ok]
+        idx = rng.choice(len(x), min(len(x), 3000), replace=False)
+        ax.plot(x[idx], y[idx], ".", ms=1.5, alpha=0.3, color="0.5")
+        yv = np.abs(y - np.median(y)) if c["kind"] == "spread" else y
+        cx, m, se = _binned(x, yv)
+        ax.errorbar(cx, m, se, color="C3", lw=2, capsize=2)
+        ax.axhline(0, color="k", lw=0.5)
+        lo, hi = np.quantile(y, [0.01, 0.99])
+        ax.set_ylim(lo, hi)
+        ax.set(xlabel=c["name"], ylabel=f"{ch} residual (sigmas)",
+               title=f"{ch} {c['kind']} vs {c['name']}: omega2 {c['strength']:.3f}, p {c['p']:.0e}")
+        ax.title.set_fontsize(9)
+    for ax in axes.ravel()[len(pairs):]:
+        ax.axis("off")
+    fig.tight_layout()
+    return fig
+
+
+def field_heatmap(diag):
+    """Mean whitened motion residual by where on the field the step began."""
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
+    for ax, ch in zip(axes, ("forward", "lateral", "turn")):
+        d = diag.residuals[ch]
+        hb = ax.hexbin(d.covariates["x"], d.covariates["y"], C=d.residual, gridsize=18, reduce_C_function=np.mean,
+                       cmap="RdBu_r", vmin=-1, vmax=1, mincnt=20)
+        ax.set(aspect="equal", title=f"{ch} residual by position", xlabel="x (m)", ylabel="y (m)")
+        fig.colorbar(hb, ax=ax, shrink=0.8)
+    fig.tight_layout()
+    return fig
+
+
+def group_panels(diag):
+    """Mean residual per landmark (sensor channels) and per action (motion channels), with 2-SE bars."""
+    fig, axes = plt.subplots(1, 2, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1, 3]})
+    for k, ch in enumerate(("reading", "bearing")):
+        d = diag.residuals[ch]
+        lm = d.covariates["landmark"]
+        ids = np.unique(lm)
+        m = [d.residual[lm == i].mean() for i in ids]
+        se = [2 * d.residual[lm == i].std() / np.sqrt(max((lm == i).sum(), 1)) for i in ids]
+        axes[0].errorbar(np.arange(len(ids)) + 0.15 * k, m, se, fmt="o", label=ch)
+        axes[0].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids])
+    axes[0].axhline(0, color="k", lw=0.5)
+    axes[0].set(xlabel="landmark", ylabel="mean residual (sigmas)", title="per landmark")
+    axes[0].legend(fontsize=8)
+    for k, ch in enumerate(("forward", "lateral", "turn")):
+        d = diag.residuals[ch]
+        a = d.covariates["action"]
+        ids = np.unique(a)
+        m = [d.residual[a == i].mean() * np.sqrt((a == i).sum()) for i in ids]
+        axes[1].plot(np.arange(len(ids)), m, "o-", ms=3, label=ch)
+        axes[1].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids], fontsize=6)
+    axes[1].axhline(0, color="k", lw=0.5)
+    axes[1].set(xlabel="action", ylabel="mean x sqrt(n) (z-score)", title="per action")
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def time_panel(diag):
+    """Residuals over time: a moving mean per channel."""
+    fig, ax = plt.subplots(figsize=(13, 3.2))
+    for ch, d in diag.residuals.items():
+        order = np.argsort(d.time)
+        t, r = d.time[order], d.residual[order]
+        w = max(len(r) // 60, 1)
+        mm = np.convolve(r, np.ones(w) / w, mode="valid") * np.sqrt(w)
+        ax.plot(t[w - 1:] / 60, mm, lw=1, label=ch)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set(xlabel="time (min)", ylabel="moving mean x sqrt(window)", title="residuals over time (z-scores; |z| > 3 is unusual)")
+    ax.legend(fontsize=8, ncol=5)
+    return fig
+
+
+def diagnosis(path: Path, log: Log, diag) -> None:
+    """DIAG/report.html: the verdict in words, the tables, then the panels strongest first."""
+    e = html.escape
+    rows = "".join(
+        f"<tr><td style='text-align:left'>{ch}</td><td>{r['rms']:.3f}</td><td>{r['whiteness_p']:.2g}</td>"
+        + "".join(f"<td>{c['name']} ({c['kind']}) {c['strength']:.3f}</td>" for c in r["covariates"][:3]) + "</tr>"
+        for ch, r in diag.channels.items())
+    cands = "".join(
+        f"<tr><td style='text-align:left'>{c.effect}</td><td>{c.channel}</td><td>{c.delta_bic:.1f}</td>"
+        f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items()))}</td>"
+        f"<td style='text-align:left'>{e(c.explanation)}</td></tr>" for c in diag.candidates)
+    skipped = "".join(f"<li>{e(k)}: {e(v)}</li>" for k, v in diag.skipped.items())
+    body = f"""<!doctype html><html><head><meta charset="utf-8"><title>casm-graph diagnosis</title>
+<style>{STYLE}</style></head><body>
+<h1>Diagnosis: <code>{e(diag.verdict)}</code></h1>
+{''.join(f'<p>{e(w)}</p>' for w in diag.words)}
+<h2>Channels</h2><p>Whitened residuals (1.0 = as noisy as the model says). Whiteness: Ljung-Box p.
+Strength: omega squared, the share of residual variance a covariate explains (mean or spread).</p>
+<table><tr><th>channel</th><th>rms</th><th>whiteness p</th><th>strongest</th><th>2nd</th><th>3rd</th></tr>{rows}</table>
+<h2>Candidate effects</h2><p>Sorted by delta BIC (negative favours the effect); held-out: gain in log-likelihood of
+time blocks hidden from the fit.</p>
+<table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>fitted</th><th>physics</th></tr>{cands}</table>
+{f'<p>Not applicable to this log:</p><ul>{skipped}</ul>' if skipped else ''}
+<h2>Where the model fails</h2>{png(covariate_panels(diag))}
+<h2>On the field</h2>{png(field_heatmap(diag))}
+<h2>Per landmark and per action</h2>{png(group_panels(diag))}
+<h2>Over time</h2>{png(time_panel(diag))}
+<p style="color:#777">{diag.seconds:.1f} s</p></body></html>"""
+    Path(path).write_text(body)

@@ -1,12 +1,17 @@
-"""Residuals of a fitted model on its log, per channel, as plain arrays.
+"""Residuals of a fitted model on its log, per channel, as plain arrays, with their covariates.
 
 Channels follow INTERFACE section 4: ``forward``, ``lateral``, ``turn`` (motion residuals in the
 body frame of each segment's start pose, per step of the segment) and ``reading``, ``bearing``.
+:func:`channels` gives them whitened (measured minus predicted over the noise sigma) with every
+covariate of INTERFACE section 4 attached, from the effect graph of :mod:`casm_graph.augmented`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from .augmented import AState, EffectProblem
 from .graph import Layout
 from .log import Log, wrap
 from .model import Model
@@ -53,3 +58,47 @@ def distances(poses_at_obs: np.ndarray, log: Log) -> np.ndarray:
     """Distance from each observation's pose to its landmark."""
     rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
     return np.hypot(rel[:, 0], rel[:, 1])
+
+
+MOTION_COVARIATES = ("time", "x", "y", "heading", "speed", "turn_rate", "time_since_action_change", "action")
+SENSOR_COVARIATES = ("time", "x", "y", "heading", "speed", "turn_rate", "distance", "bearing",
+                     "image_angle", "landmark")
+CATEGORICAL = ("action", "landmark")
+
+
+@dataclass
+class Channel:
+    name: str
+    residual: np.ndarray          # whitened, measured minus predicted
+    raw: np.ndarray               # same in the channel's own unit (m, rad, px)
+    time: np.ndarray              # s since the log began (orders the series for whiteness)
+    covariates: dict              # name -> (n,) array; NaN where unknown
+
+
+def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
+    """Residual channels of ``st`` under ``problem`` (its noise levels, effects and masks)."""
+    log = problem.log
+    out = {}
+    r = problem.rows(st, jacobians=False)
+    v = problem.step_velocity(st)
+    P = st.poses[:-1]
+    t = problem.m_ctx["t"]
+    cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "heading": P[:, 2], "speed": np.hypot(v[:, 0], v[:, 1]),
+           "turn_rate": v[:, 2], "time_since_action_change": problem.m_ctx["since"],
+           "action": log.action.astype(float)}
+    for k, name in enumerate(("forward", "lateral", "turn")):
+        out[name] = Channel(name, r.action_e[:, k], r.action_e[:, k] * problem.motion_sigma[:, k], t, cov)
+    terms = problem.observation_terms(st)
+    pred = problem.predictions(st)
+    ctx = problem.sensor_context(st)
+    pose = st.poses[problem.obs_knot]
+    ot = log.obs_t - log.t[0]
+    scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2],
+            "speed": np.hypot(ctx["velocity"][:, 0], ctx["velocity"][:, 1]), "turn_rate": ctx["velocity"][:, 2],
+            "distance": pred["distance"], "bearing": pred["bearing"],
+            "image_angle": wrap(pred["bearing"] - problem.pan), "landmark": log.obs_landmark.astype(float)}
+    for name, raw, sigma in (("reading", terms["reading"], problem.reading_sigma * terms["scale"]),
+                             ("bearing", terms["bearing"], np.full(len(ot), problem.bearing_sigma))):
+        ok = np.isfinite(raw) & problem.obs_mask
+        out[name] = Channel(name, (raw / sigma)[ok], raw[ok], ot[ok], {k: c[ok] for k, c in scov.items()})
+    return out

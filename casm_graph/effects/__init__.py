@@ -15,6 +15,6 @@ def catalog() -> list[dict]:
     out = []
     for name in sorted(REGISTRY):
         e = REGISTRY[name]()
-        out.append({"name": name, "channel": e.channel, "parameters": list(e.params) or ["dx_<id>, dy_<id> per landmark"],
+        out.append({"name": name, "channel": e.channel, "parameters": list(e.params),
                     "physics": e.physics})
     return out

@@ -13,7 +13,7 @@ class ActuatorLag(Effect):
     name = "actuator_lag"
     channel = "motion"
     params = ("tau",)
-    start = (0.1,)
+    start = (0.005,)
     scale = (0.01,)
     explains = (("forward", "time_since_action_change"), ("lateral", "time_since_action_change"),
                 ("turn", "time_since_action_change"))

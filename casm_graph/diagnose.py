@@ -1,0 +1,320 @@
+"""Where a model fails and which physical effect is missing (``casm-graph diagnose``).
+
+1. The model is refitted on the log as it stands (same procedure as every candidate, so the
+   comparison is fair) and its residual channels are tested: whiteness (Ljung-Box) and, for each
+   covariate, the dependence of the residuals' mean and of their spread on it (binned means,
+   one-way ANOVA F-test; Brown-Forsythe on absolute deviations for the spread). The residuals of
+   a time series are autocorrelated, so the F statistic is deflated by the variance inflation of
+   an AR(1) fit and the denominator degrees of freedom use the effective sample size. Strength is
+   omega squared: the share of residual variance the covariate explains, bias-corrected.
+2. Each applicable catalog effect not already in the model is added and fitted (warm start) and
+   scored by delta BIC (Laplace log-likelihood, trajectory integrated out) and by the held-out
+   negative log-likelihood on time-blocked folds: parameters are fitted with one third of the
+   observations hidden, and the hidden ones are scored by log p(O_all) - log p(O_train), the
+   predictive density of the hidden block given the rest.
+3. The verdict names the candidate that both scores support; ``none`` when no candidate is
+   supported and no channel shows material structure; ``unexplained:<covariate>`` when structure
+   remains that no candidate accounts for.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from . import effect_fit
+from .augmented import instantiate
+from .effects import REGISTRY, Effect
+from .log import Log
+from .model import Model
+from .residuals import CATEGORICAL, MOTION_COVARIATES, SENSOR_COVARIATES, Channel, channels
+
+SCHEMA = "casm-graph/diagnosis/1"
+BINS = 10
+MIN_PER_BIN = 20
+LJUNG_BOX_LAGS = 20
+FOLDS = 3
+# The evidence a verdict needs (calibrated on effect-free simulated logs, see BENCHMARKS.md):
+BIC_SUPPORT = -10.0          # delta BIC at most this (strong evidence on Kass and Raftery's scale)
+HELDOUT_SUPPORT = 0.0        # and the held-out log-likelihood must improve
+STRUCTURE_P = 1e-6           # residual structure counts when this significant ...
+STRUCTURE_OMEGA2 = 0.01      # ... and it explains at least 1 % of the residual variance
+CANDIDATE_ROUNDS, CANDIDATE_ITERATIONS = 2, 8
+FOLD_ITERATIONS = 4
+
+
+# --------------------------------------------------------------------------- statistics
+def ljung_box(r: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> float:
+    """p-value of the Ljung-Box test that the series ``r`` is white."""
+    r = np.asarray(r, float) - np.mean(r)
+    n = len(r)
+    if n <= lags + 1:
+        return float("nan")
+    den = np.sum(r * r)
+    rho = np.array([np.sum(r[k:] * r[:-k]) / den for k in range(1, lags + 1)])
+    q = n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, lags + 1)))
+    return float(stats.chi2.sf(q, lags))
+
+
+def _inflation(r_time_ordered: np.ndarray) -> float:
+    """Variance inflation (1 + rho) / (1 - rho) of means of an AR(1) series with lag-one correlation rho >= 0."""
+    r = r_time_ordered - r_time_ordered.mean()
+    rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
+    rho = min(max(rho, 0.0), 0.95)
+    return (1 + rho) / (1 - rho)
+
+
+def _groups(x: np.ndarray, categorical: bool) -> np.ndarray:
+    """Group label of each row: categories with enough rows, or quantile bins of a numeric covariate."""
+    if categorical:
+        vals, inv, counts = np.unique(x, return_inverse=True, return_counts=True)
+        big = counts >= MIN_PER_BIN
+        return np.where(big[inv], inv, -1)
+    bins = min(BINS, max(len(x) // MIN_PER_BIN, 1))
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
+
+
+def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]:
+    """(omega squared, p) of one-way ANOVA of ``y`` on groups ``g`` with autocorrelation-deflated F."""
+    keep = g >= 0
+    y, g = y[keep], g[keep]
+    labels, inv = np.unique(g, return_inverse=True)
+    k, n = len(labels), len(y)
+    if k < 2 or n <= k + 1:
+        return 0.0, 1.0
+    means = np.bincount(inv, weights=y) / np.bincount(inv)
+    ssb = float(np.sum(np.bincount(inv) * (means - y.mean()) ** 2))
+    sst = float(np.sum((y - y.mean()) ** 2))
+    ssw = sst - ssb
+    msw = ssw / (n - k)
+    omega2 = max(0.0, (ssb - (k - 1) * msw) / (sst + msw)) if sst > 0 else 0.0
+    n_eff = max(n / inflation, k + 2.0)
+    F = (ssb / (k - 1)) / max(msw, 1e-300) / inflation
+    p = float(stats.f.sf(F, k - 1, n_eff - k))
+    omega2_eff = max(0.0, (ssb / inflation - (k - 1) * msw) / (sst + msw)) if sst > 0 else 0.0
+    return min(omega2, omega2_eff), p
+
+
+def covariate_tests(ch: Channel) -> list[dict]:
+    """Mean and spread dependence of a channel's residuals on each covariate, strongest first."""
+    order = np.argsort(ch.time, kind="stable")
+    r = ch.residual
+    infl = _inflation(r[order])
+    dev = np.abs(r - np.median(r))
+    infl_dev = _inflation(dev[order])
+    out = []
+    for name, x in ch.covariates.items():
+        ok = np.isfinite(x) & np.isfinite(r)
+        if ok.sum() < 3 * MIN_PER_BIN or np.ptp(x[ok]) == 0:
+            continue
+        g = _groups(x[ok], name in CATEGORICAL)
+        s_mean, p_mean = anova(r[ok], g, infl)
+        s_spread, p_spread = anova(dev[ok], g, infl_dev)
+        if s_spread > s_mean:
+            out.append({"name": name, "strength": s_spread, "p": p_spread, "kind": "spread"})
+        else:
+            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"})
+    out.sort(key=lambda d: (-d["strength"], d["p"]))
+    return out
+
+
+def channel_report(chs: dict[str, Channel]) -> dict:
+    rep = {}
+    for name, ch in chs.items():
+        order = np.argsort(ch.time, kind="stable")
+        rep[name] = {"rms": float(np.sqrt(np.mean(ch.residual ** 2))) if len(ch.residual) else float("nan"),
+                     "rms_raw": float(np.sqrt(np.mean(ch.raw ** 2))) if len(ch.raw) else float("nan"),
+                     "whiteness_p": ljung_box(ch.residual[order]),
+                     "covariates": covariate_tests(ch)}
+    return rep
+
+
+def structures(rep: dict) -> list[dict]:
+    """Material residual structure: (channel, covariate) pairs past both thresholds, strongest first."""
+    found = []
+    for ch, r in rep.items():
+        for c in r["covariates"]:
+            if c["p"] < STRUCTURE_P and c["strength"] >= STRUCTURE_OMEGA2:
+                found.append({"channel": ch, **c})
+    found.sort(key=lambda d: -d["strength"])
+    return found
+
+
+# --------------------------------------------------------------------------- candidates
+@dataclass
+class Candidate:
+    effect: str
+    channel: str
+    delta_bic: float
+    heldout_nll_drop: float
+    explanation: str
+    delta_log_likelihood: float
+    parameters: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
+                "heldout_nll_drop": self.heldout_nll_drop, "explanation": self.explanation,
+                "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters}
+
+
+def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
+    """Masks of the observations kept for training in each of ``k`` contiguous time blocks."""
+    t = log.obs_t
+    edges = np.quantile(t, np.linspace(0, 1, k + 1))
+    block = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, k - 1)
+    return [block != f for f in range(k)]
+
+
+def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list) -> float:
+    """Sum over folds of log p(hidden block | rest) with parameters fitted without the block."""
+    total = 0.0
+    for mask in folds(log):
+        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS)
+        full = effect_fit.fit(log, tr.model, tr.poses, effects, theta=tr.theta, iterations=FOLD_ITERATIONS,
+                              fit_parameters=False)
+        total += full.log_likelihood - tr.log_likelihood
+    return total
+
+
+def _n_data(log: Log) -> int:
+    return int(np.sum(np.isfinite(log.obs_reading)) + np.sum(np.isfinite(log.obs_bearing)))
+
+
+def score_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", base_heldout: float,
+                    extra) -> Candidate:
+    """Fit the refitted model plus ``extra`` and score it against ``base`` (the same procedure without it)."""
+    t0 = time.perf_counter()
+    eff = instantiate([extra], log)[0]
+    effects = refit.effects + [eff]
+    f = effect_fit.fit(log, refit.model, refit.poses, effects, rounds=CANDIDATE_ROUNDS,
+                       iterations=CANDIDATE_ITERATIONS)
+    dll = f.log_likelihood - base.log_likelihood
+    k = eff.free_parameters()
+    dbic = -2.0 * dll + k * np.log(_n_data(log))
+    held = heldout_log_likelihood(log, f.model, f.poses, effects)
+    return Candidate(eff.name, eff.channel, float(dbic), float(held - base_heldout), eff.physics, float(dll),
+                     f.model.effects.get(eff.name, {}), time.perf_counter() - t0)
+
+
+def _score_worker(args):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    return score_candidate(*args)
+
+
+# --------------------------------------------------------------------------- verdict
+def verdict(cands: list[Candidate], structure: list[dict]) -> tuple[str, list[str]]:
+    """The verdict and the sentences that explain it."""
+    words = []
+    supported = [c for c in cands if c.delta_bic <= BIC_SUPPORT and c.heldout_nll_drop > HELDOUT_SUPPORT]
+    if supported:
+        best = supported[0]
+        words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
+                     f"and improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats. "
+                     f"{best.explanation}")
+        if len(supported) > 1:
+            words.append("Also supported, less strongly: " + ", ".join(
+                f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in supported[1:]) + ".")
+        return best.effect, words
+    if structure:
+        s = structure[0]
+        words.append(f"No catalog effect explains the data better, but the {s['channel']} residuals' "
+                     f"{s['kind']} follows {s['name']} (it explains {100 * s['strength']:.1f} % of their variance, "
+                     f"p = {s['p']:.1e}). Something the model and the catalog lack depends on {s['name']}.")
+        return f"unexplained:{s['name']}", words
+    words.append("The model explains the data: no candidate effect is supported (every delta BIC above "
+                 f"{BIC_SUPPORT:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")
+    return "none", words
+
+
+@dataclass
+class Diagnosis:
+    channels: dict
+    candidates: list[Candidate]
+    verdict: str
+    words: list[str]
+    structure: list[dict]
+    base: object
+    residuals: dict
+    seconds: float
+    skipped: dict
+
+    def to_json(self) -> dict:
+        return {"schema": SCHEMA, "channels": self.channels,
+                "candidates": [c.to_json() for c in self.candidates], "verdict": self.verdict,
+                "summary": self.words, "not_applicable": self.skipped,
+                "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
+                "seconds": round(self.seconds, 2)}
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(_clean(self.to_json()), indent=2))
+
+
+def _clean(x):
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    if isinstance(x, np.floating):
+        return _clean(float(x))
+    return x
+
+
+def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
+             progress=None) -> Diagnosis:
+    """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
+
+    ``extra_effects``: user effect classes to consider besides the catalog.
+    """
+    t0 = time.perf_counter()
+    progress = progress
+    if progress is not None:
+        progress.stage("refit model", None)
+    present = [n for n in model.effects]
+    refit = effect_fit.fit(log, model, poses, present, rounds=CANDIDATE_ROUNDS, iterations=CANDIDATE_ITERATIONS)
+    # the reference every candidate is scored against: the same warm-started procedure, nothing added
+    base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=CANDIDATE_ROUNDS,
+                          iterations=CANDIDATE_ITERATIONS)
+    chs = channels(refit.problem, refit.state)
+    rep = channel_report(chs)
+    pool = [REGISTRY[n] for n in sorted(REGISTRY)] + list(extra_effects)
+    todo, skipped = [], {}
+    for cls in pool:
+        if cls.name in present:
+            continue
+        why = cls(log).applicable(log)
+        if why:
+            skipped[cls.name] = why
+        else:
+            todo.append(cls)
+    if progress is not None:
+        progress.stage("held-out base", None)
+    base_held = heldout_log_likelihood(log, base.model, base.poses, base.effects)
+    if progress is not None:
+        progress.stage("candidates", len(todo))
+    cands = []
+    args = [(log, refit, base, base_held, cls) for cls in todo]
+    if workers > 1 and len(args) > 1 and all(cls.name in REGISTRY for cls in todo):
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            for c in ex.map(_score_worker, [a[:4] + (a[4].name,) for a in args]):
+                cands.append(c)
+                if progress is not None:
+                    progress.step(1)
+    else:
+        for a in args:
+            cands.append(score_candidate(*a))
+            if progress is not None:
+                progress.step(1)
+    cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
+    struct = structures(rep)
+    v, words = verdict(cands, struct)
+    return Diagnosis(rep, cands, v, words, struct, refit, chs, time.perf_counter() - t0, skipped)
