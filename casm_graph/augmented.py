@@ -453,11 +453,12 @@ def estimate_noise(problem: EffectProblem, st: AState, model: Model, seed: int =
     t = problem.observation_terms(st)
     for eff, s in problem.sensor_effects:
         if eff.noise_only:
-            z_r = t["reading"] / (m.reading_sigma * t["scale"])
-            z_b = t["bearing"] / m.bearing_sigma
-            ctx = {"weight": t["weight"], "reading_scale": t["scale"], "reading_sigma": m.reading_sigma,
+            k = problem.obs_mask                       # hidden (held-out) observations do not count
+            z_r = t["reading"][k] / (m.reading_sigma * t["scale"][k])
+            z_b = t["bearing"][k] / m.bearing_sigma
+            ctx = {"weight": t["weight"][k], "reading_scale": t["scale"][k], "reading_sigma": m.reading_sigma,
                    "bearing_sigma": m.bearing_sigma}
-            theta[s] = eff.estimate_noise(theta[s], z_r, z_b, t["distance"], ctx)
+            theta[s] = eff.estimate_noise(theta[s], z_r, z_b, t["distance"][k], ctx)
     return m, theta
 
 

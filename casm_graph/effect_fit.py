@@ -49,7 +49,9 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
     cost, its = [], 0
     problem = EffectProblem(log, model, effects, th, obs_mask)
     st = problem.state(poses, model, th)
-    for r in range(rounds if fit_parameters else 1):
+    mixture = any(e.outlier_fraction(th[sl]) > 0 for e, sl in zip(effects, problem.slices))
+    # with fixed parameters one round, or two for a mixture, whose inlier weights follow the poses
+    for r in range(rounds if fit_parameters else 1 + mixture):
         problem = EffectProblem(log, model, effects, st.theta, obs_mask)
         problem.refresh_noise_state(st)
         st, h = least_squares(problem, st, max_iterations=iterations, on_iteration=on_iteration,
