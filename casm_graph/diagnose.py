@@ -11,7 +11,9 @@
    scored by delta BIC (Laplace log-likelihood, trajectory integrated out) and by the held-out
    negative log-likelihood on time-blocked folds: parameters are fitted with one third of the
    observations hidden, and the hidden ones are scored by log p(O_all) - log p(O_train), the
-   predictive density of the hidden block given the rest.
+   predictive density of the hidden block given the rest. The folds run for the candidates whose
+   delta BIC is below zero; one that does not even improve the in-sample fit cannot be the verdict,
+   and its ``heldout_nll_drop`` is null.
 3. The verdict names the candidate that both scores support; ``none`` when no candidate is
    supported and no channel shows material structure; ``unexplained:<covariate>`` when structure
    remains that no candidate accounts for.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -47,6 +50,8 @@ STRUCTURE_P = 1e-6           # residual structure counts when this significant .
 STRUCTURE_OMEGA2 = 0.01      # ... and it explains at least 1 % of the residual variance
 CANDIDATE_ROUNDS, CANDIDATE_ITERATIONS = 2, 8
 FOLD_ITERATIONS = 4
+HELDOUT_GATE = 0.0           # candidates with delta BIC below this get held-out folds
+FOLD_TOL = 1e-5              # relative cost change that ends a fold fit (about 0.1 nat on these logs)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -162,7 +167,9 @@ class Candidate:
     def to_json(self) -> dict:
         return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
                 "heldout_nll_drop": self.heldout_nll_drop, "explanation": self.explanation,
-                "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters}
+                "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters,
+                **({} if np.isfinite(self.heldout_nll_drop) else
+                   {"heldout_skipped": "no in-sample gain (delta BIC >= 0), held-out folds not run"})}
 
 
 def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
@@ -177,9 +184,10 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
     """Sum over folds of log p(hidden block | rest) with parameters fitted without the block."""
     total = 0.0
     for mask in folds(log):
-        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS)
+        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS,
+                            rel_tol=FOLD_TOL)
         full = effect_fit.fit(log, tr.model, tr.poses, effects, theta=tr.theta, iterations=FOLD_ITERATIONS,
-                              fit_parameters=False)
+                              fit_parameters=False, rel_tol=FOLD_TOL)
         total += full.log_likelihood - tr.log_likelihood
     return total
 
@@ -188,25 +196,56 @@ def _n_data(log: Log) -> int:
     return int(np.sum(np.isfinite(log.obs_reading)) + np.sum(np.isfinite(log.obs_bearing)))
 
 
-def score_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", base_heldout: float,
-                    extra) -> Candidate:
-    """Fit the refitted model plus ``extra`` and score it against ``base`` (the same procedure without it)."""
+def _resolve(extra):
+    """A catalog name (how effects travel to worker processes) back to its class."""
+    return REGISTRY[extra] if isinstance(extra, str) else extra
+
+
+def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra):
+    """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
+
+    Returns the candidate (held-out score still to come) and the fitted model and poses.
+    """
     t0 = time.perf_counter()
-    eff = instantiate([extra], log)[0]
-    effects = refit.effects + [eff]
-    f = effect_fit.fit(log, refit.model, refit.poses, effects, rounds=CANDIDATE_ROUNDS,
+    eff = instantiate([_resolve(extra)], log)[0]
+    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=CANDIDATE_ROUNDS,
                        iterations=CANDIDATE_ITERATIONS)
     dll = f.log_likelihood - base.log_likelihood
-    k = eff.free_parameters()
-    dbic = -2.0 * dll + k * np.log(_n_data(log))
-    held = heldout_log_likelihood(log, f.model, f.poses, effects)
-    return Candidate(eff.name, eff.channel, float(dbic), float(held - base_heldout), eff.physics, float(dll),
-                     f.model.effects.get(eff.name, {}), time.perf_counter() - t0)
+    dbic = -2.0 * dll + eff.free_parameters() * np.log(_n_data(log))
+    c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
+                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0)
+    return c, f.model, f.poses
 
 
-def _score_worker(args):
+def _fit_task(args):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    return score_candidate(*args)
+    return fit_candidate(*args)
+
+
+def _heldout_task(args):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    log, model, poses, effects = args
+    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects])
+
+
+def _parallel(fn, tasks: list, workers: int, progress=None) -> list:
+    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled)."""
+    results = []
+    if workers > 1 and len(tasks) > 1:
+        try:
+            with ProcessPoolExecutor(max_workers=workers) as ex:
+                for r in ex.map(fn, tasks):
+                    results.append(r)
+                    if progress is not None:
+                        progress.step(1)
+            return results
+        except (AttributeError, TypeError, pickle.PicklingError):
+            results = []
+    for t in tasks:
+        results.append(fn(t))
+        if progress is not None:
+            progress.step(1)
+    return results
 
 
 # --------------------------------------------------------------------------- verdict
@@ -279,41 +318,44 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     progress = progress
     if progress is not None:
         progress.stage("refit model", None)
-    present = [n for n in model.effects]
+    own = {cls.name: cls for cls in extra_effects}
+    present = [own.get(n, n) for n in model.effects]
+    present_names = set(model.effects)
     refit = effect_fit.fit(log, model, poses, present, rounds=CANDIDATE_ROUNDS, iterations=CANDIDATE_ITERATIONS)
     # the reference every candidate is scored against: the same warm-started procedure, nothing added
     base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=CANDIDATE_ROUNDS,
                           iterations=CANDIDATE_ITERATIONS)
     chs = channels(refit.problem, refit.state)
     rep = channel_report(chs)
-    pool = [REGISTRY[n] for n in sorted(REGISTRY)] + list(extra_effects)
+    pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
+    pool.update({cls.name: cls for cls in extra_effects})
+    pool = list(pool.values())
     todo, skipped = [], {}
     for cls in pool:
-        if cls.name in present:
+        if cls.name in present_names:
             continue
         why = cls(log).applicable(log)
         if why:
             skipped[cls.name] = why
         else:
             todo.append(cls)
-    if progress is not None:
-        progress.stage("held-out base", None)
-    base_held = heldout_log_likelihood(log, base.model, base.poses, base.effects)
+    wire = (lambda cls: cls.name if REGISTRY.get(cls.name) is cls else cls)
     if progress is not None:
         progress.stage("candidates", len(todo))
-    cands = []
-    args = [(log, refit, base, base_held, cls) for cls in todo]
-    if workers > 1 and len(args) > 1 and all(cls.name in REGISTRY for cls in todo):
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for c in ex.map(_score_worker, [a[:4] + (a[4].name,) for a in args]):
-                cands.append(c)
-                if progress is not None:
-                    progress.step(1)
-    else:
-        for a in args:
-            cands.append(score_candidate(*a))
-            if progress is not None:
-                progress.step(1)
+    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls)) for cls in todo], workers, progress)
+    cands = [c for c, _, _ in fitted]
+    # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
+    # the verdict, and the folds are most of the cost
+    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, todo) if c.delta_bic < HELDOUT_GATE]
+    if promising:
+        if progress is not None:
+            progress.stage("held-out folds", len(promising) + 1)
+        present_wire = [wire(type(e)) for e in base.effects]
+        held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire)]
+                         + [(log, m, p, present_wire + [wire(cls)]) for _, m, p, cls in promising],
+                         workers, progress)
+        for (c, _, _, _), h in zip(promising, held[1:]):
+            c.heldout_nll_drop = float(h - held[0])
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     struct = structures(rep)
     v, words = verdict(cands, struct)

@@ -42,9 +42,9 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     check_compatible(log, model, model_path.name)
     model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                         action_ids=log.action_ids, velocity_std=None)
-    unknown = [n for n in model.effects if n not in REGISTRY]
+    unknown = [n for n in model.effects if n not in REGISTRY and n not in {c.name for c in extra_effects}]
     if unknown:
-        raise LogError(f"{model_path.name}: unknown effect(s) {unknown} in the model")
+        raise LogError(f"{model_path.name}: unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
     if progress is not None:
         progress.stage("start trajectory", None)
     poses = start_trajectory(log, model, model_path)

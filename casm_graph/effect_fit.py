@@ -38,7 +38,7 @@ def describe(effects: list[Effect], problem: EffectProblem, theta: np.ndarray) -
 
 def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | None = None,
         rounds: int = ROUNDS, iterations: int = ITERATIONS, obs_mask: np.ndarray | None = None,
-        seed: int = 0, fit_parameters: bool = True, on_iteration=None) -> EffectFit:
+        seed: int = 0, fit_parameters: bool = True, on_iteration=None, rel_tol: float = 1e-6) -> EffectFit:
     """Least squares with ``effects`` from ``model`` and ``poses`` (T+1, 3); noise re-estimated each round.
 
     ``fit_parameters=False`` keeps table, polynomial, effects and noise where they are and only
@@ -55,7 +55,7 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
         problem = EffectProblem(log, model, effects, st.theta, obs_mask)
         problem.refresh_noise_state(st)
         st, h = least_squares(problem, st, max_iterations=iterations, on_iteration=on_iteration,
-                              freeze_parameters=not fit_parameters)
+                              freeze_parameters=not fit_parameters, rel_tol=rel_tol)
         its += h.iterations
         cost.extend(h.cost)
         model = model.with_(velocities=st.velocities, reading_poly=st.poly)

@@ -55,6 +55,7 @@ class SimConfig:
     margin: float = 0.25                     # keep this far inside the field when choosing actions
     camera: Camera = field(default_factory=Camera)
     effects: dict[str, float] = field(default_factory=dict)
+    extra_effects: tuple = ()                # user Effect classes (not registered) that ``effects`` may name
 
 
 def true_table(rng: np.random.Generator) -> np.ndarray:
@@ -103,7 +104,8 @@ def _choose(pose, table, counts, n, dt, margin, rng) -> int:
 def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     """Run the protocol; return the log (with truth) and the truth model as a JSON-ready dict."""
     from .effects import get as get_effect
-    effects = [get_effect(name)() for name in cfg.effects]      # unknown names fail before any work
+    own = {cls.name: cls for cls in cfg.extra_effects}
+    effects = [own[name]() if name in own else get_effect(name)() for name in cfg.effects]   # unknown names fail first
     if cfg.minutes <= 0:
         raise LogError(f"--minutes must be positive (got {cfg.minutes:g})")
     rng = np.random.default_rng(cfg.seed)
@@ -207,7 +209,7 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
                 d_grid, cam.reading(d_grid), 3).tolist(),
         },
         "effects": {e.name: e.describe(th) for e, th in zip(effects, thetas)},
-        "simulation": {k: v for k, v in asdict(cfg).items() if k != "camera"},
+        "simulation": {k: v for k, v in asdict(cfg).items() if k not in ("camera", "extra_effects")},
     }
     return log, truth
 
