@@ -18,6 +18,8 @@ from .log import Log, LogError, load
 from .methods import METHODS, Fit, Progress
 from .model import paper_start
 
+SCASM_METHODS = ("scasm", "scasm-graph")      # casm_graph/scasm_run.py
+
 
 def write_trajectory(path: Path, t: np.ndarray, poses: np.ndarray, std: np.ndarray) -> None:
     with open(path, "w", newline="") as f:
@@ -57,6 +59,7 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     from .methods.graph import world_std
     pose_std = world_std(ef.poses, np.sqrt(np.einsum("kii->ki", cov_p)), cov_p[:, :2, :2])
     model = ef.model.with_(velocity_std=sd[:3 * A].reshape(-1, 3), reading_poly_std=sd[3 * A:3 * A + D],
+                           reading_poly_cov=cov_t[3 * A:3 * A + D, 3 * A:3 * A + D],
                            fit={**fit.model.fit, "iterations": fit.model.fit.get("iterations", 0) + ef.iterations,
                                 "seconds": round(fit.model.fit.get("seconds", 0) + time.perf_counter() - t0, 3),
                                 "log_likelihood": ef.log_likelihood, "effects_std": effect_std})
@@ -69,6 +72,9 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
         effects: tuple[str, ...] = (), seed: int = 0, progress: Progress | None = None) -> tuple[Log, Fit]:
     """Calibrate the bundle at ``log_dir`` and write the run to ``out``; bad input raises LogError first."""
+    if method in SCASM_METHODS:               # 1-D logs: their own model kinds and report
+        from . import scasm_run
+        return scasm_run.run(log_dir, out, method, progress=progress)
     if method not in METHODS:
         raise LogError(f"unknown method {method!r} (known: {', '.join(sorted(METHODS))})")
     classes = [get_effect(e) if isinstance(e, str) else e for e in effects]   # unknown names fail first
@@ -79,6 +85,22 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
         why = cls(log).applicable(log)
         if why:
             raise LogError(f"effect {cls.name!r} cannot be fitted on {log_dir}: {why}")
+    if log.controls is not None:            # continuous commands: the command-model graph
+        from . import continuous, command_report
+        if method != "graph":
+            raise LogError(f"--method {method}: continuous commands (commands.csv 'v,w') are calibrated "
+                           f"by the graph method only")
+        if classes:
+            raise LogError("--effect: effects are not available for continuous commands yet")
+        fit = continuous.fit(log, continuous.start_model(log, sensor_degree), seed=seed, progress=progress)
+        if progress is not None:
+            progress.stage("report", None)
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        fit.model.save(out / "model.json")
+        write_trajectory(out / "trajectory.csv", log.pose_times, fit.poses, fit.pose_std)
+        command_report.calibration(out / "report.html", log, fit)
+        return log, fit
     start = paper_start(log, sensor_degree)
     fit = METHODS[method](log, start, seed=seed, progress=progress)
     if classes:

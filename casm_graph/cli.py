@@ -22,11 +22,12 @@ class Bar(Progress):
         self.bar = None
         self.t0 = time.perf_counter()
 
-    def stage(self, name, total=None):
+    def stage(self, name, total=None, unit="rounds"):
         self.close()
         if self.enabled:
             self.bar = tqdm(total=total, desc=f"{name:>12}", unit="it", leave=True, file=sys.stderr,
-                            bar_format="{desc}: {percentage:3.0f}%|{bar:24}| {n_fmt}/{total_fmt} rounds [{elapsed}]{postfix}"
+                            bar_format="{desc}: {percentage:3.0f}%|{bar:24}| {n_fmt}/{total_fmt} " + unit
+                            + " [{elapsed}]{postfix}"
                             if total else "{desc}: [{elapsed}]")
 
     def step(self, n=1, **info):
@@ -46,6 +47,18 @@ class Bar(Progress):
 
 def _simulate(args) -> int:
     from .simulate import SimConfig, simulate, write
+    if args.protocol != "aibo":               # the seed papers' other set-ups (SCASM 1-D, MCL floor)
+        from . import simulate_1d, simulate_floor
+        if args.effect:
+            raise LogError(f"--effect is only available with --protocol aibo (got --protocol {args.protocol})")
+        if args.protocol == "scasm-1d":
+            log, truth = simulate_1d.simulate(simulate_1d.Sim1DConfig(minutes=args.minutes, seed=args.seed,
+                                                                      reading_sigma=args.reading_sigma))
+        else:
+            log, truth = simulate_floor.simulate(simulate_floor.FloorConfig(minutes=args.minutes, seed=args.seed))
+        d = write(log, truth, args.out)
+        print(f"wrote {d}: {args.protocol}, {log.steps} steps, {len(log.obs_t)} observations, {log.minutes:.1f} min")
+        return 0
     effects = {}
     for item in args.effect:
         name, sep, value = item.partition("=")
@@ -62,8 +75,18 @@ def _simulate(args) -> int:
 
 
 def _calibrate(args) -> int:
-    from .calibrate import run
+    from .calibrate import SCASM_METHODS, run
     bar = Bar(enabled=not args.quiet)
+    if args.method in SCASM_METHODS:
+        try:
+            _, model = run(args.log, args.out, method=args.method, progress=bar)
+        finally:
+            bar.close()
+        print(f"calibrated {args.log} with {args.method} in {model['fit']['seconds']:.1f} s")
+        for k, v in model["fit"].get("evaluation", {}).items():
+            print(f"  {k} {v:.4g}")
+        print(f"  wrote {args.out}/model.json, trajectory.csv, report.html")
+        return 0
     try:
         log, fit = run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
                        effects=tuple(args.effect), seed=args.seed, progress=bar)
@@ -81,7 +104,7 @@ def _diagnose(args) -> int:
     from .diagnose_run import run
     bar = Bar(enabled=not args.quiet)
     try:
-        diag = run(args.log, args.model, args.out, workers=args.workers, progress=bar)
+        diag = run(args.log, args.model, args.out, workers=args.workers, progress=bar, candidates=args.candidate)
     finally:
         bar.close()
     print(f"verdict: {diag.verdict}  ({diag.seconds:.0f} s)")
@@ -91,11 +114,42 @@ def _diagnose(args) -> int:
     return 0
 
 
+def _import_mrclam(args) -> int:
+    from .mrclam import import_robot
+    log, info = import_robot(args.dir, args.robot, args.out)
+    print(f"wrote {args.out}: robot {args.robot}, {log.steps} command steps ({info['command_rows_dropped']} "
+          f"repeated times dropped), {len(log.obs_t)} landmark observations "
+          f"({info['robot_sightings_dropped']} sightings of robots dropped), {log.minutes:.1f} min, truth.csv from Vicon")
+    return 0
+
+
 def _effects(args) -> int:
     from .effects import catalog
     for c in catalog():
         print(f"{c['name']:<22} {c['channel']:<7} {', '.join(c['parameters'])}")
         print(f"{'':<30}{c['physics']}")
+    return 0
+
+
+def _uncertainty(args) -> int:
+    import warnings
+    from .uncertainty_run import run
+    bar = Bar(enabled=not args.quiet)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            unc = run(args.log, args.model, args.out, priors=tuple(args.prior), walkers=args.walkers,
+                      max_steps=args.max_steps, seed=args.seed, progress=bar)
+    finally:
+        bar.close()
+    ch = unc.chain
+    print(f"posterior of {len(ch.names)} noise levels in {unc.seconds:.0f} s: {ch.walkers} walkers x {ch.steps} steps "
+          f"(burn-in {ch.burn_in}), {1000 * ch.seconds_per_evaluation:.1f} ms per likelihood evaluation")
+    for n, s in unc.summary.items():
+        print(f"  {n:<24} {s['median']:.4g}  90% [{s['ci90'][0]:.4g}, {s['ci90'][1]:.4g}]")
+    for note in ch.notes:
+        print(f"casm-graph: warning: {note}", file=sys.stderr)
+    print(f"  wrote {args.out}/posterior.json, model.json, corner.png, trace.png, report.html")
     return 0
 
 
@@ -118,11 +172,14 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--reading-sigma", type=float, default=1.0, help="reading noise (px)")
     s.add_argument("--bearing-sigma", type=float, default=0.5, help="bearing noise (rad)")
     s.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE")
+    s.add_argument("--protocol", default="aibo", choices=["aibo", "scasm-1d", "floor"],
+                   help="aibo: the EKFS-EM field (default); scasm-1d: SCASM's walk to and from one beacon; "
+                        "floor: a wheeled robot on a floor whose motion noise differs by region (MCL paper)")
     s.set_defaults(func=_simulate)
     c = sub.add_parser("calibrate", help="learn the action and sensor models of a log")
     c.add_argument("log")
     c.add_argument("--out", required=True)
-    c.add_argument("--method", default="graph", choices=sorted(METHODS))
+    c.add_argument("--method", default="graph", choices=sorted(METHODS) + ["scasm", "scasm-graph"])
     c.add_argument("--effect", action="append", default=[], metavar="NAME")
     c.add_argument("--sensor-degree", type=int, default=3)
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")
@@ -133,10 +190,30 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument("--model", required=True, help="RUN/model.json (RUN/trajectory.csv is used as the start when present)")
     d.add_argument("--out", required=True)
     d.add_argument("--workers", type=int, default=2, help="processes fitting candidates in parallel")
+    d.add_argument("--candidate", action="append", default=None, metavar="NAME",
+                   help="try only this effect (repeatable; default: every applicable catalog effect)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=_diagnose)
+    i = sub.add_parser("import-mrclam", help="convert one robot of the UTIAS MRCLAM dataset into a log bundle")
+    i.add_argument("dir", help="directory with the dataset's .dat files (one run)")
+    i.add_argument("--robot", type=int, required=True, help="robot number 1..5")
+    i.add_argument("--out", required=True)
+    i.set_defaults(func=_import_mrclam)
     e = sub.add_parser("effects", help="list the effect catalog")
     e.set_defaults(func=_effects)
+    u = sub.add_parser("uncertainty", help="posterior of the noise levels (emcee) and Laplace std of the rest")
+    u.add_argument("log")
+    u.add_argument("--model", required=True, help="RUN/model.json (RUN/trajectory.csv is used as the start when present)")
+    u.add_argument("--out", required=True)
+    u.add_argument("--prior", action="append", default=[], metavar="NAME=KIND:A:B",
+                   help="override a prior: KIND loguniform, uniform (bounds A, B), lognormal (median, sd of log) "
+                        "or normal (mean, sd); NAME as in posterior.json")
+    u.add_argument("--walkers", type=int, default=None, help="emcee walkers (default 2 per sampled quantity + 2, at least 12)")
+    u.add_argument("--max-steps", type=int, default=5000,
+                   help="stop here even if the chain is not yet 50 autocorrelation times long (warns)")
+    u.add_argument("--seed", type=int, default=0)
+    u.add_argument("--quiet", action="store_true", help="no progress bar")
+    u.set_defaults(func=_uncertainty)
     k = sub.add_parser("compare", help="the learned model against independently measured tables")
     k.add_argument("model")
     k.add_argument("--measured", required=True, help="directory with sensor.csv and/or actions.csv")

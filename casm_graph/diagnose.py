@@ -34,7 +34,7 @@ from scipy import stats
 from . import effect_fit
 from .augmented import instantiate
 from .effects import REGISTRY, Effect
-from .log import Log
+from .log import Log, LogError
 from .model import Model
 from .residuals import CATEGORICAL, MOTION_COVARIATES, SENSOR_COVARIATES, Channel, channels
 
@@ -309,13 +309,21 @@ def _clean(x):
 
 
 def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
-             progress=None) -> Diagnosis:
+             progress=None, candidates=None) -> Diagnosis:
     """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
 
     ``extra_effects``: user effect classes to consider besides the catalog.
+    ``candidates``: names of the effects to try (default: every applicable one).
     """
     t0 = time.perf_counter()
-    progress = progress
+    pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
+    pool.update({cls.name: cls for cls in extra_effects})
+    if candidates is not None:                  # the user narrows the search to these effects
+        unknown = sorted(set(candidates) - set(pool))
+        if unknown:
+            raise LogError(f"unknown candidate effect(s) {unknown} (known: {', '.join(sorted(pool))})")
+        pool = {n: c for n, c in pool.items() if n in set(candidates)}
+    pool = list(pool.values())
     if progress is not None:
         progress.stage("refit model", None)
     own = {cls.name: cls for cls in extra_effects}
@@ -327,9 +335,6 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
                           iterations=CANDIDATE_ITERATIONS)
     chs = channels(refit.problem, refit.state)
     rep = channel_report(chs)
-    pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
-    pool.update({cls.name: cls for cls in extra_effects})
-    pool = list(pool.values())
     todo, skipped = [], {}
     for cls in pool:
         if cls.name in present_names:
@@ -341,7 +346,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
             todo.append(cls)
     wire = (lambda cls: cls.name if REGISTRY.get(cls.name) is cls else cls)
     if progress is not None:
-        progress.stage("candidates", len(todo))
+        progress.stage("candidates", len(todo), unit="effects")
     fitted = _parallel(_fit_task, [(log, refit, base, wire(cls)) for cls in todo], workers, progress)
     cands = [c for c, _, _ in fitted]
     # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
@@ -349,7 +354,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, todo) if c.delta_bic < HELDOUT_GATE]
     if promising:
         if progress is not None:
-            progress.stage("held-out folds", len(promising) + 1)
+            progress.stage("held-out", len(promising) + 1, unit="models")
         present_wire = [wire(type(e)) for e in base.effects]
         held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire)]
                          + [(log, m, p, present_wire + [wire(cls)]) for _, m, p, cls in promising],

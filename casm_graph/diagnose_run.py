@@ -34,7 +34,7 @@ def check_compatible(log: Log, model: Model, source: str) -> None:
         raise LogError(f"{source}: the model has no velocity for action(s) {missing[:10]} that the log runs")
 
 
-def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects=()) -> Diagnosis:
+def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects=(), candidates=None) -> Diagnosis:
     """Diagnose the model at ``model_path`` on the bundle at ``log_dir``; write DIAG files to ``out``."""
     model_path = Path(model_path)
     model = Model.load(model_path)
@@ -48,7 +48,8 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     if progress is not None:
         progress.stage("start trajectory", None)
     poses = start_trajectory(log, model, model_path)
-    diag = diagnose(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress)
+    diag = diagnose(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
+                    candidates=candidates)
     if progress is not None:
         progress.stage("report", None)
     out = Path(out)

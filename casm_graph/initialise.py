@@ -156,28 +156,38 @@ def _headings(seg_of_knot, seg_act, t_knot, obs_knot, dirs, bearing, w_max=3.0):
     return out
 
 
-def initialise(log: Log, model: Model, stride: int = 5, cell: float = 0.1) -> Start:
-    """Global start for ``calibrate``: trajectory, velocity table and sensor polynomial."""
-    T = log.steps
-    knots = np.arange(0, T + 1, stride)
-    t_pose = log.pose_times
-    t_knot = t_pose[knots]
-    obs_knot = np.clip(np.round(log.obs_step / stride).astype(int), 0, len(knots) - 1)
+@dataclass
+class Located:
+    """Step 1's answer: smoothed positions at the knots and the sensor curve fitted against them."""
+
+    mean: np.ndarray            # (K, 2) posterior mean position at each knot
+    poly: np.ndarray            # reading polynomial against the smoothed distances
+    residual: np.ndarray        # reading residuals under ``poly``
+    hypothesis: tuple[float, float]
+    log_evidence: float
+
+
+def locate(log: Log, obs_knot: np.ndarray, n_knots: int, dt_k: float, c_knot: np.ndarray, n_c_knots: int,
+           degree: int, cell: float = 0.1, speed: float = 0.6) -> Located:
+    """Step 1: where was the robot at each knot, with no velocities and an unknown sensor curve.
+
+    ``obs_knot`` maps observations to knots ``dt_k`` seconds apart; ``c_knot`` maps them to the
+    coarser knots (about 3 ``dt_k`` apart) on which the hypotheses are scored. ``speed`` (m/s) sets
+    the random walk; it should exceed how fast the robot moves.
+    """
     has_r = ~np.isnan(log.obs_reading)
     lm_idx = log.landmark_index
     grid = _grid(log, cell, margin=1.5)
-    dt_k = float(np.median(np.diff(t_knot)))
-    blur = 0.6 * dt_k / cell       # random walk of ~0.6 m/s: faster than a walking Aibo
+    blur = speed * dt_k / cell       # random walk of ~0.6 m/s: faster than a walking Aibo
     reading = log.obs_reading[has_r]
     r_med = float(np.median(reading))
     r_scale = float(np.median(np.abs(reading - r_med))) + 1e-9
     args = (obs_knot[has_r], lm_idx[has_r], reading)
 
-    # 1. sensor hypotheses reading = k d^p, scored by evidence on a coarser grid (3x stride, 2x cell)
-    c_stride, c_cell = 3 * stride, 2 * cell
+    # sensor hypotheses reading = k d^p, scored by evidence on a coarser grid (3x stride, 2x cell)
+    c_cell = 2 * cell
     c_grid = _grid(log, c_cell, margin=1.5)
-    c_knot = np.clip(np.round(log.obs_step / c_stride).astype(int), 0, T // c_stride)
-    c_blur = 0.6 * dt_k * 3 / c_cell
+    c_blur = speed * dt_k * 3 / c_cell
     c_args = (c_knot[has_r], lm_idx[has_r], reading)
     d_typ = np.geomspace(0.5, 2.0 * np.ptp(log.landmark_xy, axis=0).max() + 0.5, 10)
     best = None
@@ -185,27 +195,43 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float = 0.1) -> St
         for dt_ in d_typ:
             k = r_med / dt_ ** p
             _, ev = _smooth(c_grid, *c_args, lambda d, k=k, p=p: k * d ** p,
-                            lambda r: 0.15 * abs(r) + 0.1 * r_scale, T // c_stride + 1, c_blur,
+                            lambda r: 0.15 * abs(r) + 0.1 * r_scale, n_c_knots, c_blur,
                             means=False)
             if best is None or ev > best[2]:
                 best = (p, k, ev)
     p, k, ev = best
     mean, ev = _smooth(grid, *args, lambda d: k * d ** p, lambda r: 0.15 * abs(r) + 0.1 * r_scale,
-                       len(knots), blur)
+                       n_knots, blur)
     # EM rounds: refit the curve as a polynomial against the smoothed distances
-    deg = len(model.reading_poly) - 1
     lm = log.landmark_xy[lm_idx]
     for _ in range(2):
         d_obs = np.hypot(*(mean[obs_knot] - lm).T)
-        poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, deg)
+        poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, degree)
         res = reading - np.polynomial.polynomial.polyval(d_obs[has_r], poly)
         s = 1.4826 * np.median(np.abs(res)) + 1e-9
         lo, hi = np.percentile(d_obs[has_r], [1, 99])
         predict = (lambda d, poly=poly, lo=lo, hi=hi:
                    np.polynomial.polynomial.polyval(np.clip(d, lo, hi), poly))
-        mean, ev = _smooth(grid, *args, predict, lambda r, s=s: 2.0 * s, len(knots), blur)
+        mean, ev = _smooth(grid, *args, predict, lambda r, s=s: 2.0 * s, n_knots, blur)
     d_obs = np.hypot(*(mean[obs_knot] - lm).T)
-    poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, deg)
+    poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, degree)
+    return Located(mean, poly, res, (p, k), float(ev))
+
+
+def initialise(log: Log, model: Model, stride: int = 5, cell: float = 0.1) -> Start:
+    """Global start for ``calibrate``: trajectory, velocity table and sensor polynomial."""
+    T = log.steps
+    knots = np.arange(0, T + 1, stride)
+    t_pose = log.pose_times
+    t_knot = t_pose[knots]
+    obs_knot = np.clip(np.round(log.obs_step / stride).astype(int), 0, len(knots) - 1)
+    lm_idx = log.landmark_index
+    lm = log.landmark_xy[lm_idx]
+    c_stride = 3 * stride
+    c_knot = np.clip(np.round(log.obs_step / c_stride).astype(int), 0, T // c_stride)
+    loc = locate(log, obs_knot, len(knots), float(np.median(np.diff(t_knot))), c_knot, T // c_stride + 1,
+                 len(model.reading_poly) - 1, cell)
+    mean, poly, res, (p, k), ev = loc.mean, loc.poly, loc.residual, loc.hypothesis, loc.log_evidence
 
     # 2. headings per constant-action segment from bearings
     act = log.action

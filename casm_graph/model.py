@@ -30,11 +30,29 @@ class Model:
     distance_range: tuple[float, float] = (0.0, 0.0)
     velocity_std: np.ndarray | None = None  # (A, 3) posterior std
     reading_poly_std: np.ndarray | None = None
+    reading_poly_cov: np.ndarray | None = None  # (D+1, D+1) posterior covariance of the polynomial
     effects: dict = field(default_factory=dict)
     fit: dict = field(default_factory=dict)
+    command: object | None = None           # command_model.CommandModel for continuous commands
 
     def reading(self, d) -> np.ndarray:
         return np.polynomial.polynomial.polyval(np.asarray(d, float), self.reading_poly)
+
+    def reading_std(self, d) -> np.ndarray:
+        """Posterior std of the sensor curve at distances ``d`` (from ``reading_poly_cov``; NaN without it)."""
+        d = np.asarray(d, float)
+        if self.reading_poly_cov is None:
+            return np.full(d.shape, np.nan)
+        V = np.vander(d.ravel(), len(self.reading_poly), increasing=True)
+        var = np.einsum("ni,ij,nj->n", V, np.asarray(self.reading_poly_cov, float), V)
+        return np.sqrt(np.clip(var, 0, None)).reshape(d.shape)
+
+    def reading_band(self, points: int = 25) -> dict:
+        """The sensor curve's 90 % credible band over the distances seen (Laplace: mean +- 1.645 std)."""
+        d = np.linspace(*self.distance_range, points)
+        m, s = self.reading(d), self.reading_std(d)
+        return {"distance": d.tolist(), "reading": m.tolist(), "std": s.tolist(),
+                "lo90": (m - 1.645 * s).tolist(), "hi90": (m + 1.645 * s).tolist()}
 
     def velocity_of(self, action: np.ndarray) -> np.ndarray:
         """(n, 3) velocity of each action id in ``action``."""
@@ -53,12 +71,17 @@ class Model:
                   "distance_range": [float(x) for x in self.distance_range]}
         if self.reading_poly_std is not None:
             sensor["reading_poly_std"] = self.reading_poly_std.tolist()
+        if self.reading_poly_cov is not None:
+            sensor["reading_poly_cov"] = np.asarray(self.reading_poly_cov).tolist()
+            sensor["reading_band"] = self.reading_band()
+        action_model = ({"kind": "table",
+                         "velocities": {a: v.tolist() for a, v in zip(ids, self.velocities)},
+                         "std": {a: [None if np.isnan(x) else float(x) for x in s]
+                                 for a, s in zip(ids, std)}}
+                        if self.command is None else self.command.to_json())
         return {
             "schema": SCHEMA,
-            "action_model": {"kind": "table",
-                             "velocities": {a: v.tolist() for a, v in zip(ids, self.velocities)},
-                             "std": {a: [None if np.isnan(x) else float(x) for x in s]
-                                     for a, s in zip(ids, std)}},
+            "action_model": action_model,
             "motion_noise": [float(x) for x in self.motion_noise],
             "sensor_model": sensor,
             "effects": self.effects,
@@ -74,6 +97,11 @@ class Model:
             if data.get("schema") != SCHEMA:
                 raise LogError(f"{source}: schema is {data.get('schema')!r}, expected {SCHEMA!r}")
             am, sm = data["action_model"], data["sensor_model"]
+            command = None
+            if am.get("kind") == "command_poly":
+                from .command_model import CommandModel
+                command = CommandModel.from_json(am)
+                am = {"kind": "table", "velocities": {}, "std": {}}
             if am.get("kind") != "table":
                 raise LogError(f"{source}: action_model kind {am.get('kind')!r} is not supported here")
             ids = np.array(sorted(int(a) for a in am["velocities"]))
@@ -91,7 +119,9 @@ class Model:
                        velocity_std=vstd,
                        reading_poly_std=(np.array(sm["reading_poly_std"], float)
                                          if "reading_poly_std" in sm else None),
-                       effects=data.get("effects", {}), fit=data.get("fit", {}))
+                       reading_poly_cov=(np.array(sm["reading_poly_cov"], float)
+                                         if "reading_poly_cov" in sm else None),
+                       effects=data.get("effects", {}), fit=data.get("fit", {}), command=command)
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, LogError):
                 raise

@@ -59,7 +59,7 @@ def test_unknown_method_and_effect_are_bad_input(short_bundle, tmp_path):
     assert r.returncode == 2 and not (tmp_path / "r").exists()
 
 
-def test_continuous_commands_are_refused_clearly(short_bundle, tmp_path):
+def test_a_continuous_log_too_short_to_calibrate_is_refused_clearly(short_bundle, tmp_path):
     d = short_bundle[0]
     import shutil
     shutil.copytree(d, tmp_path / "log")

@@ -176,8 +176,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         keys = gtsam.KeyVector([V(a) for a in range(full.n_actions)] + [C(0)])
         joint = m.jointMarginalCovariance(keys)
         vstd = np.array([np.sqrt(np.diag(joint.at(V(a), V(a)))) for a in range(full.n_actions)])
-        cstd = np.sqrt(np.diag(joint.at(C(0), C(0))))
-        model = model.with_(velocity_std=vstd, reading_poly_std=cstd)
+        ccov = np.asarray(joint.at(C(0), C(0)))
+        model = model.with_(velocity_std=vstd, reading_poly_std=np.sqrt(np.diag(ccov)), reading_poly_cov=ccov)
         pose_std = world_std(poses, pose_std, cov_xy)
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)
     d = d[~np.isnan(log.obs_reading)]

@@ -1,0 +1,115 @@
+"""Full-size checks of the two seed baselines (issue 6), printed as the tables BENCHMARKS.md records.
+
+SCASM: 10 trials of the 1-D protocol, 2.5 min each: the paper's algorithm and the 1-D ISAM2 graph,
+scored as the paper scores (best scale / scale + offset fit, scale-consistency ratio).
+MCL: the region-dependent floor, default static / optimal static / global / regional dynamic MCL,
+localisation error, the regional map, and the graph's joint per-region estimate.
+
+    python benchmarks/seed_baselines.py --scasm-trials 10 --mcl-seeds 0 1 2 3 4
+"""
+import argparse
+import time
+
+import numpy as np
+
+from casm_graph import mcl, scasm
+from casm_graph.simulate_1d import Sim1DConfig
+from casm_graph.simulate_1d import simulate as sim1d
+from casm_graph.simulate_floor import FloorConfig
+from casm_graph.simulate_floor import simulate as simfloor
+
+
+def scasm_trials(n: int, minutes: float = 2.5) -> dict:
+    rows = {"scasm": [], "graph": [], "start": [], "best": []}
+    secs = {"scasm": [], "graph": []}
+    for seed in range(n):
+        log, truth = sim1d(Sim1DConfig(minutes=minutes, seed=seed))
+        walk = scasm.walk_of(log)
+        on = scasm.online(walk)
+        gr = scasm.graph_online(walk)
+        for name, res in (("scasm", on), ("graph", gr)):
+            s = scasm.score(res.action, res.sensor, truth)
+            rows[name].append((s.action_rms, s.sensor_rms, s.consistency))
+            secs[name].append(res.seconds)
+        rows["start"].append(scasm.score(lambda c: c, on.sensor, truth).action_rms)
+        rows["best"].append((truth["action_model"]["best_quartic_rms_mm_s"], truth["sensor_model"]["best_cubic_rms_mm"]))
+        print(f"trial {seed}: scasm {rows['scasm'][-1]}, graph {rows['graph'][-1]}", flush=True)
+    return {k: np.array(v) for k, v in rows.items()} | {"seconds": {k: np.mean(v) for k, v in secs.items()}}
+
+
+def mcl_seed(seed: int, minutes: float = 10.0) -> dict:
+    cfg = FloorConfig(seed=seed, minutes=minutes)
+    log, truth = simfloor(cfg)
+    K_true = np.array(truth["motion_model"]["region_k"])
+    drive = mcl.drive_of(log)
+    out = {}
+    runs = {"default": mcl.run_mcl(drive, cfg.size, cfg.grid, "default", seed=seed)}
+    k_opt = mcl.fit_k(*runs["default"].pairs[:, :4].T)
+    runs["optimal static"] = mcl.run_mcl(drive, cfg.size, cfg.grid, "static", k_static=k_opt, seed=seed)
+    runs["global dynamic"] = mcl.run_mcl(drive, cfg.size, cfg.grid, "global", seed=seed)
+    runs["regional dynamic"] = mcl.run_mcl(drive, cfg.size, cfg.grid, "regional", seed=seed)
+    for name, r in runs.items():
+        out[name] = mcl.errors(r.poses, log.truth)
+    reg = runs["regional dynamic"]
+    k_pairs = mcl.regional_fit(reg.pairs, len(K_true))
+    t0 = time.perf_counter()
+    g = mcl.graph_em(drive, cfg.size, cfg.grid, reg.poses)
+    out["graph seconds"] = time.perf_counter() - t0
+    out["graph iterations"] = g.iterations
+    out["k"] = {name: (mcl.log_error(K, K_true), mcl.rough_regions(K), mcl.variance_error(K, K_true))
+                for name, K in (("mcl map (final windows)", reg.k_final), ("mcl all pairs per region", k_pairs),
+                                ("graph EM", g.k))}
+    out["true rough"] = list(cfg.rough)
+    paper_worst = all(out["default"][c] > out[m][c] for m in list(runs)[1:] for c in ("range_error_pct", "angle_error_pct"))
+    print(f"seed {seed}: default worst in range and angle error: {paper_worst}; "
+          + "; ".join(f"{k}: log err {v[0]:.2f}, var err {v[2]:.2f}, rough {v[1]}" for k, v in out["k"].items()), flush=True)
+    out["graph smoothed"] = mcl.errors(g.poses, log.truth)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scasm-trials", type=int, default=10)
+    ap.add_argument("--mcl-seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4])
+    ap.add_argument("--mcl-minutes", type=float, default=10.0)
+    a = ap.parse_args()
+    if a.scasm_trials:
+        r = scasm_trials(a.scasm_trials)
+        print("\n| method | action RMS mm/s | sensor RMS mm | abs(abs(ratio) - 1) | seconds per trial |")
+        print("|---|---|---|---|---|")
+        print("| paper (Aibo, 10 trials) | 29.6 ± 12.4 | 70.4 ± 13.9 | 0.08 ± 0.06 | - |")
+        for name in ("scasm", "graph"):
+            m, s = r[name].mean(0), r[name].std(0)
+            print(f"| {name} | {m[0]:.1f} ± {s[0]:.1f} | {m[1]:.1f} ± {s[1]:.1f} | {m[2]:.3f} ± {s[2]:.3f} | {r['seconds'][name]:.1f} |")
+        print(f"| start A0(c) = c | {r['start'].mean():.1f} | | | |")
+        print(f"| best quartic / cubic | {r['best'][:, 0].mean():.1f} | {r['best'][:, 1].mean():.1f} | | |")
+        print(f"graph better than scasm: action on {np.sum(r['graph'][:, 0] <= r['scasm'][:, 0])}/{len(r['scasm'])} trials, "
+              f"sensor on {np.sum(r['graph'][:, 1] <= r['scasm'][:, 1])}/{len(r['scasm'])}")
+    if a.mcl_seeds:
+        res = [mcl_seed(s, a.mcl_minutes) for s in a.mcl_seeds]
+        modes = ["default", "optimal static", "global dynamic", "regional dynamic"]
+        print("\n| MCL | position RMS m | heading RMS rad | range error % | angle error % |")
+        print("|---|---|---|---|---|")
+        for m in modes + ["graph smoothed"]:
+            e = np.array([[o[m][k] for k in ("position_rms", "heading_rms", "range_error_pct", "angle_error_pct")] for o in res])
+            print(f"| {m} | {e[:, 0].mean():.4f} | {e[:, 1].mean():.4f} | {e[:, 2].mean():.1f} | {e[:, 3].mean():.1f} |")
+        worst = sum(all(o["default"]["position_rms"] > o[m]["position_rms"] for m in modes[1:]) for o in res)
+        pw = sum(all(o["default"][c] > o[m][c] for m in modes[1:] for c in ("range_error_pct", "angle_error_pct"))
+                 for o in res)
+        print(f"default static worst in position on {worst}/{len(res)} seeds, in both range % and angle % on {pw}/{len(res)}")
+        print("\n| per-region k estimate | RMS log(k/k_true), median over seeds | RMS log(var/var_true) | rough regions right |")
+        print("|---|---|---|---|")
+        for name in res[0]["k"]:
+            err = np.median([o["k"][name][0] for o in res])
+            verr = np.median([o["k"][name][2] for o in res])
+            right = sum(o["k"][name][1] == o["true rough"] for o in res)
+            print(f"| {name} | {err:.2f} | {verr:.2f} | {right}/{len(res)} |")
+        closer = sum(o["k"]["graph EM"][0] <= min(o["k"]["mcl map (final windows)"][0], o["k"]["mcl all pairs per region"][0])
+                     for o in res)
+        print(f"graph closer to the true k's than both MCL estimates on {closer}/{len(res)} seeds")
+        print(f"graph EM: {np.mean([o['graph seconds'] for o in res]):.1f} s, "
+              f"{np.mean([o['graph iterations'] for o in res]):.0f} iterations on average")
+
+
+if __name__ == "__main__":
+    main()

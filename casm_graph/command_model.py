@@ -1,0 +1,85 @@
+"""Action model for continuous commands: actual velocity = polynomial of the commanded one.
+
+A wheeled robot commanded ``(v, w)`` moves forward at ``f_v(v)`` and turns at ``f_w(w)`` with no
+sideways motion. Each map is a short polynomial in the command divided by a fixed scale (the
+largest command magnitude in the log), so every coefficient is a velocity in m/s or rad/s and the
+whole model is one parameter vector ``[a_0..a_Dv, b_0..b_Dw]`` that is linear in the basis: the
+graph holds it as a single vector variable next to the poses and the sensor polynomial.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+KIND = "command_poly"
+
+
+@dataclass(frozen=True)
+class CommandModel:
+    """f_v(v) = sum a_i (v / scale_v)**i, f_w(w) = sum b_i (w / scale_w)**i, lateral velocity 0."""
+
+    scale: tuple[float, float]            # command scales (v, w)
+    v_coef: np.ndarray                    # (Dv+1,)
+    w_coef: np.ndarray                    # (Dw+1,)
+    v_std: np.ndarray | None = None
+    w_std: np.ndarray | None = None
+    command_range: tuple = ((0.0, 0.0), (0.0, 0.0))
+
+    @property
+    def params(self) -> np.ndarray:
+        return np.concatenate([self.v_coef, self.w_coef])
+
+    @property
+    def n_v(self) -> int:
+        return len(self.v_coef)
+
+    def with_params(self, p: np.ndarray, std: np.ndarray | None = None) -> "CommandModel":
+        p = np.asarray(p, float)
+        kw = {"v_coef": p[:self.n_v].copy(), "w_coef": p[self.n_v:].copy()}
+        if std is not None:
+            kw.update(v_std=np.asarray(std[:self.n_v], float), w_std=np.asarray(std[self.n_v:], float))
+        return replace(self, **kw)
+
+    def basis(self, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, Dv+1) and (n, Dw+1) monomials of the scaled commands."""
+        u = np.asarray(controls, float) / np.asarray(self.scale)
+        return (u[:, 0:1] ** np.arange(self.n_v), u[:, 1:2] ** np.arange(len(self.w_coef)))
+
+    def velocities(self, controls: np.ndarray) -> np.ndarray:
+        """(n, 3) body-frame (forward, lateral, turn) velocity for each command row."""
+        bv, bw = self.basis(controls)
+        return np.column_stack([bv @ self.v_coef, np.zeros(len(bv)), bw @ self.w_coef])
+
+    def to_json(self) -> dict:
+        def lst(a):
+            return None if a is None else [float(x) for x in a]
+        return {"kind": KIND, "commands": ["v", "w"], "lateral": 0.0,
+                "scale": {"v": float(self.scale[0]), "w": float(self.scale[1])},
+                "coefficients": {"v": lst(self.v_coef), "w": lst(self.w_coef)},
+                "std": {"v": lst(self.v_std), "w": lst(self.w_std)},
+                "command_range": {"v": [float(x) for x in self.command_range[0]],
+                                  "w": [float(x) for x in self.command_range[1]]}}
+
+    @classmethod
+    def from_json(cls, am: dict) -> "CommandModel":
+        std = am.get("std") or {}
+        rng = am.get("command_range") or {}
+        return cls(scale=(float(am["scale"]["v"]), float(am["scale"]["w"])),
+                   v_coef=np.array(am["coefficients"]["v"], float),
+                   w_coef=np.array(am["coefficients"]["w"], float),
+                   v_std=None if std.get("v") is None else np.array(std["v"], float),
+                   w_std=None if std.get("w") is None else np.array(std["w"], float),
+                   command_range=(tuple(rng.get("v", (0.0, 0.0))), tuple(rng.get("w", (0.0, 0.0)))))
+
+
+def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,
+                 gain: float = 0.0) -> CommandModel:
+    """A model sized for ``controls``: every map ``gain`` times the identity (0: the paper's zero start)."""
+    scale = np.max(np.abs(controls), axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    v, w = np.zeros(v_degree + 1), np.zeros(w_degree + 1)
+    v[1], w[1] = gain * scale[0], gain * scale[1]
+    rng = ((float(controls[:, 0].min()), float(controls[:, 0].max())),
+           (float(controls[:, 1].min()), float(controls[:, 1].max())))
+    return CommandModel(scale=(float(scale[0]), float(scale[1])), v_coef=v, w_coef=w, command_range=rng)

@@ -1,0 +1,502 @@
+"""Calibration of a log with continuous commands: poses, command-model parameters and sensor polynomial.
+
+The graph has a pose at a set of knots (every ``knot_dt`` seconds and at every step with an
+observation, so sightings attach to their own pose exactly), one vector variable holding the
+command model of :mod:`casm_graph.command_model`, and the sensor polynomial. Consecutive knots are
+joined by a :mod:`factors.command` factor over the command steps between them.
+
+The start is global, as for the action table (:mod:`casm_graph.initialise`):
+1. the grid smoother of :func:`casm_graph.initialise.locate` finds positions and the sensor curve
+   with no velocities (reading = k d**p hypotheses; a range wins with p = +1);
+2. the turn map is the one whose integrated commands best explain the headings that the bearings
+   imply, by a grid search over its offset and gain (summed resultant lengths of 10 s windows);
+3. with headings fixed, positions are linear in the speed-map coefficients: least squares.
+Then a coarse graph (1 s knots) is optimised in rounds that re-estimate every noise level and set
+aside sightings more than ``GATE`` sigmas off, and a finer graph (0.25 s knots) finishes.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+import scipy.sparse as sp
+from gtsam.symbol_shorthand import C, M, X
+
+import factors
+
+from . import noise
+from .command_model import CommandModel, for_commands
+from .initialise import locate
+from .log import Log, LogError, wrap
+from .methods.base import Fit, Progress
+from .methods.graph import world_std
+from .model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
+from .solve import least_squares
+
+PARAM_PRIOR_SIGMA = 10.0
+POLY_PRIOR_SIGMA = 1e4
+GATE = 5.0                   # whitened residual beyond which a sighting is set aside (re-decided each round)
+HUBER = 2.0                  # sightings count quadratically up to this many sigmas, linearly beyond
+MIN_SIGHTINGS = 10
+INIT_KNOT_DT = 0.5
+INIT_WINDOW = 5.0
+COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
+FULL_KNOT_DT, FULL_ROUNDS, FULL_ITERATIONS = 0.25, 2, 15
+
+
+# --------------------------------------------------------------------------- the graph
+
+@dataclass(frozen=True)
+class Layout:
+    """Pose knots and the command steps (padded to a common length) between consecutive knots."""
+
+    knots: np.ndarray        # (K,) pose-step index of each knot
+    seg_idx: np.ndarray      # (K-1, kmax) command step of each slot (0 in padding)
+    seg_dt: np.ndarray       # (K-1, kmax) step length (0 in padding)
+    obs_knot: np.ndarray     # (N,) knot of each observation
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.knots)
+
+    @property
+    def seg_time(self) -> np.ndarray:
+        return self.seg_dt.sum(axis=1)
+
+
+def layout(log: Log, knot_dt: float) -> Layout:
+    """Knots every ``knot_dt`` seconds, at every observation's step, and at the first and last pose."""
+    tp = log.pose_times
+    T = log.steps
+    regular = np.searchsorted(tp, np.arange(tp[0], tp[-1], knot_dt))
+    knots = np.unique(np.concatenate([regular, log.obs_step, [0, T]])).astype(int)
+    n = np.diff(knots)
+    kmax = int(n.max())
+    slot = np.arange(kmax)[None, :]
+    mask = slot < n[:, None]
+    idx = np.where(mask, knots[:-1, None] + slot, 0)
+    dt = np.where(mask, log.dt[idx], 0.0)
+    return Layout(knots, idx, dt, np.searchsorted(knots, log.obs_step))
+
+
+@dataclass
+class State:
+    poses: np.ndarray        # (K, 3)
+    params: np.ndarray       # (P,) command-model coefficients
+    poly: np.ndarray         # (D+1,)
+
+
+def huber(e: np.ndarray, k: float = HUBER) -> np.ndarray:
+    """Square-root weights that turn whitened residuals into Huber's (linear beyond ``k`` sigmas)."""
+    a = np.abs(e)
+    return np.sqrt(np.where(a > k, k / np.maximum(a, 1e-300), 1.0))
+
+
+class Problem:
+    """The graph of one continuous-command log under fixed noise levels, linearised in numpy.
+
+    ``use`` masks (reading, bearing) say which sightings take part (outliers set aside).
+    """
+
+    def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None):
+        self.log, self.lay = log, lay
+        cm: CommandModel = model.command
+        bv, bw = cm.basis(log.controls)
+        self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
+        ref = float(np.median(log.dt))
+        self.motion_sigma = (np.asarray(model.motion_noise, float)[None, :]
+                             * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None])
+        lm = log.landmark_xy[log.landmark_index]
+        r, b = ~np.isnan(log.obs_reading), ~np.isnan(log.obs_bearing)
+        if use is not None:
+            r, b = r & use[0], b & use[1]
+        self.r_sel, self.b_sel = r, b
+        self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
+        self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
+        self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
+        self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
+
+    def rows(self, st: State):
+        P = st.poses
+        e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
+        w = 1.0 / self.motion_sigma
+        ae, aJ = e * w, [j * w[:, :, None] for j in J]
+        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
+        re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
+        w = huber(re)
+        re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
+        e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
+        be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
+        w = huber(be)
+        be, bJ = be * w, bJ * w[:, None]
+        pe = np.concatenate([st.params / PARAM_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
+        return ae, aJ, re, rJ, be, bJ, pe
+
+    def cost(self, st: State) -> float:
+        ae, _, re, _, be, _, pe = self.rows(st)
+        return 0.5 * float(np.sum(ae ** 2) + np.sum(re ** 2) + np.sum(be ** 2) + np.sum(pe ** 2))
+
+    def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
+        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
+        unit3 = gtsam.noiseModel.Unit.Create(3)
+        g = gtsam.GaussianFactorGraph()
+        for i in range(self.lay.n_poses - 1):
+            if poses_only:
+                g.add(X(i), Ha[i], X(i + 1), Hb[i], -ae[i], unit3)
+            else:
+                g.add(X(i), Ha[i], X(i + 1), Hb[i], M(0), Hp[i], -ae[i], unit3)
+        D = self.n_poly
+        knot = np.concatenate([self.r_knot, self.b_knot])
+        Jp = np.concatenate([rJ[0], bJ])
+        Jc = np.concatenate([rJ[1], np.zeros((len(self.b_knot), D))])
+        e = np.concatenate([re, be])
+        order = np.argsort(knot, kind="stable")
+        knot, Jp, Jc, e = knot[order], Jp[order], Jc[order], e[order]
+        cuts = np.flatnonzero(np.diff(knot)) + 1
+        for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
+            nm = gtsam.noiseModel.Unit.Create(int(s1 - s0))
+            if poses_only:
+                g.add(X(int(knot[s0])), Jp[s0:s1], -e[s0:s1], nm)
+            else:
+                g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1], nm)
+        if poses_only:
+            return g
+        Pn = self.n_params
+        g.add(M(0), np.eye(Pn) / PARAM_PRIOR_SIGMA, -pe[:Pn], gtsam.noiseModel.Unit.Create(Pn))
+        g.add(C(0), np.eye(D) / POLY_PRIOR_SIGMA, -pe[Pn:], gtsam.noiseModel.Unit.Create(D))
+        return g
+
+    def retract(self, st: State, delta: gtsam.VectorValues) -> State:
+        K = self.lay.n_poses
+        d = np.array([delta.at(X(i)) for i in range(K)])
+        th = st.poses[:, 2]
+        c, s = np.cos(th), np.sin(th)
+        poses = np.column_stack([st.poses[:, 0] + c * d[:, 0] - s * d[:, 1],
+                                 st.poses[:, 1] + s * d[:, 0] + c * d[:, 1], wrap(th + d[:, 2])])
+        if not delta.exists(C(0)):
+            return State(poses, st.params, st.poly)
+        return State(poses, st.params + np.asarray(delta.at(M(0))), st.poly + np.asarray(delta.at(C(0))))
+
+    def keys_dims(self) -> list[tuple[int, int]]:
+        return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_params), (C(0), self.n_poly)]
+
+    def jacobian(self, st: State, poses_only: bool = False):
+        """Whitened sparse Jacobian, residual and the row groups of each noise channel."""
+        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
+        K, Pn, D = self.lay.n_poses, self.n_params, self.n_poly
+        n_act, n_r, n_b = 3 * (K - 1), len(re), len(be)
+        rows, cols, vals = [], [], []
+
+        def block(row0, J, col0):
+            _, m, d = J.shape
+            rows.append(np.broadcast_to(row0[:, None, None] + np.arange(m)[None, :, None], J.shape).ravel())
+            cols.append(np.broadcast_to(col0[:, None, None] + np.arange(d)[None, None, :], J.shape).ravel())
+            vals.append(J.ravel())
+
+        seg = np.arange(K - 1)
+        block(3 * seg, Ha, 3 * seg)
+        block(3 * seg, Hb, 3 * (seg + 1))
+        block(n_act + np.arange(n_r), rJ[0][:, None, :], 3 * self.r_knot)
+        block(n_act + n_r + np.arange(n_b), bJ[:, None, :], 3 * self.b_knot)
+        n_rows, n_cols = n_act + n_r + n_b, 3 * K
+        e = np.concatenate([ae.ravel(), re, be])
+        if not poses_only:
+            block(3 * seg, Hp, np.full(K - 1, 3 * K))
+            block(n_act + np.arange(n_r), rJ[1][:, None, :], np.full(n_r, 3 * K + Pn))
+            prior = np.concatenate([np.full(Pn, 1 / PARAM_PRIOR_SIGMA), np.full(D, 1 / POLY_PRIOR_SIGMA)])
+            rows.append(n_rows + np.arange(Pn + D))
+            cols.append(3 * K + np.arange(Pn + D))
+            vals.append(prior)
+            n_rows, n_cols = n_rows + Pn + D, n_cols + Pn + D
+            e = np.concatenate([e, pe])
+        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(n_rows, n_cols))
+        groups = {"forward": np.arange(0, n_act, 3), "lateral": np.arange(1, n_act, 3),
+                  "turn": np.arange(2, n_act, 3), "reading": n_act + np.arange(n_r),
+                  "bearing": n_act + n_r + np.arange(n_b)}
+        return A, e, groups
+
+
+def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, poses_only: bool = False) -> Model:
+    """Every noise level re-estimated at the current optimum, degrees of freedom accounted for."""
+    A, e, groups = problem.jacobian(st, poses_only=poses_only)
+    traces = noise.hat_traces(A, groups, seed=seed)
+    new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) for k, rows in groups.items()}
+    m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
+    m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
+    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
+                       bearing_sigma=model.bearing_sigma * new["bearing"])
+
+
+def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = GATE) -> tuple[np.ndarray, np.ndarray]:
+    """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
+    rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
+    d = np.hypot(rel[:, 0], rel[:, 1])
+    r = np.abs(log.obs_reading - model.reading(d)) / model.reading_sigma
+    b = np.abs(wrap(log.obs_bearing - np.arctan2(rel[:, 1], rel[:, 0]) + poses_at_obs[:, 2])) / model.bearing_sigma
+    return ~(r > z), ~(b > z)
+
+
+def state(poses: np.ndarray, model: Model) -> State:
+    return State(np.asarray(poses, float).copy(), model.command.params.copy(), np.asarray(model.reading_poly, float).copy())
+
+
+def with_state(model: Model, st: State) -> Model:
+    return model.with_(command=model.command.with_params(st.params), reading_poly=st.poly.copy())
+
+
+def step_velocities(log: Log, model: Model) -> np.ndarray:
+    """(T, 3) body-frame velocity of every command step under the model."""
+    return model.command.velocities(log.controls)
+
+
+def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
+    v = model.command.velocities(controls) * dt[:, None]
+    th = start[2] + np.concatenate([[0.0], np.cumsum(v[:, 2])])
+    c, s = np.cos(th[:-1]), np.sin(th[:-1])
+    x = start[0] + np.concatenate([[0.0], np.cumsum(c * v[:, 0] - s * v[:, 1])])
+    y = start[1] + np.concatenate([[0.0], np.cumsum(s * v[:, 0] + c * v[:, 1])])
+    return np.column_stack([x, y, wrap(th)])
+
+
+def fill_in(log: Log, model: Model, knots: np.ndarray, knot_poses: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses: each knot-to-knot stretch dead-reckoned, its closure error spread linearly."""
+    v = step_velocities(log, model) * log.dt[:, None]
+    th_rel = np.concatenate([[0.0], np.cumsum(v[:, 2])])
+    out = np.empty((log.steps + 1, 3))
+    for i in range(len(knots) - 1):
+        a, b = int(knots[i]), int(knots[i + 1])
+        th = knot_poses[i, 2] + th_rel[a:b + 1] - th_rel[a]
+        c, s = np.cos(th[:-1]), np.sin(th[:-1])
+        x = knot_poses[i, 0] + np.concatenate([[0.0], np.cumsum(c * v[a:b, 0] - s * v[a:b, 1])])
+        y = knot_poses[i, 1] + np.concatenate([[0.0], np.cumsum(s * v[a:b, 0] + c * v[a:b, 1])])
+        err = np.array([knot_poses[i + 1, 0] - x[-1], knot_poses[i + 1, 1] - y[-1],
+                        wrap(knot_poses[i + 1, 2] - th[-1])])
+        frac = np.linspace(0.0, 1.0, b - a + 1)[:, None]
+        out[a:b + 1] = np.column_stack([x, y, th]) + frac * err
+    out[:, 2] = wrap(out[:, 2])
+    return out
+
+
+# --------------------------------------------------------------------------- global start
+
+@dataclass
+class Start:
+    poses: np.ndarray            # (T+1, 3)
+    model: Model
+    hypothesis: tuple[float, float]
+    log_evidence: float
+    windows_placed: float        # fraction of windows whose start pose the sightings fixed
+
+
+def _inverse(poly: np.ndarray, lo: float, hi: float):
+    """Distance as a function of the reading, by interpolation on the monotone part of ``poly``."""
+    d = np.linspace(lo, hi, 400)
+    r = np.polynomial.polynomial.polyval(d, poly)
+    keep = np.flatnonzero(np.diff(r) > 0) if r[-1] > r[0] else np.flatnonzero(np.diff(r) < 0)
+    d, r = d[keep], r[keep]
+    order = np.argsort(r)
+    return lambda z: np.interp(z, r[order], d[order])
+
+
+def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: np.ndarray,
+                headings: np.ndarray, spread: float = 0.15):
+    """Start pose of one window from its sightings, searching the start heading on a grid.
+
+    Sighting i, taken after the robot moved ``rel[i]`` = (dx, dy, dtheta) in the window-start frame,
+    places the window start at landmark - dist * u(theta0 + dtheta + bearing) - R(theta0) (dx, dy)
+    for every candidate theta0; the heading whose placements agree best (robust spread) wins.
+    Returns (x0, y0, theta0) and the winning cost (summed capped squared spread in ``spread`` units).
+    """
+    th = headings[:, None] + rel[None, :, 2] + bearing[None, :]
+    c0, s0 = np.cos(headings)[:, None], np.sin(headings)[:, None]
+    x = fix_lm[None, :, 0] - dist * np.cos(th) - (c0 * rel[None, :, 0] - s0 * rel[None, :, 1])
+    y = fix_lm[None, :, 1] - dist * np.sin(th) - (s0 * rel[None, :, 0] + c0 * rel[None, :, 1])
+    mx, my = np.median(x, axis=1, keepdims=True), np.median(y, axis=1, keepdims=True)
+    cost = np.minimum(((x - mx) ** 2 + (y - my) ** 2) / spread ** 2, 9.0).sum(axis=1)
+    i = int(np.argmin(cost))
+    return np.array([mx[i, 0], my[i, 0], headings[i]]), float(cost[i])
+
+
+def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: float = INIT_WINDOW,
+               cell: float = 0.1) -> Start:
+    """Global start from nothing but the log and the map.
+
+    1. The sensor hypothesis (reading = k d**p) by the evidence of the grid smoother of
+       :func:`casm_graph.initialise.locate`; a range (p = +1) starts as the line reading = k d.
+    2. The command maps start at the nominal velocity = command (the robot's own commands are the
+       only velocity scale in the log); the graph learns them.
+    3. Each ``window`` seconds with three or more sightings gets its start pose by
+       :func:`window_pose` (a global search over its start heading, sightings placed by nominal
+       dead reckoning within the window); the trajectory is dead-reckoned from window to window.
+    """
+    T, tp, dt = log.steps, log.pose_times, log.dt
+    t0 = tp[0]
+    n_knots = int(np.ceil((tp[-1] - t0) / knot_dt)) + 1
+    obs_knot = np.clip(np.round((log.obs_t - t0) / knot_dt).astype(int), 0, n_knots - 1)
+    n_c = int(np.ceil((tp[-1] - t0) / (3 * knot_dt))) + 1
+    c_knot = np.clip(np.round((log.obs_t - t0) / (3 * knot_dt)).astype(int), 0, n_c - 1)
+    speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
+    loc = locate(log, obs_knot, n_knots, knot_dt, c_knot, n_c, len(model.reading_poly) - 1, cell,
+                 speed=max(speed, 0.05))
+    p_hyp, k_hyp = loc.hypothesis
+    poly0 = loc.poly
+    if p_hyp == 1.0:
+        poly0 = np.zeros(len(model.reading_poly))
+        poly0[1] = k_hyp
+    cm = model.command
+    nominal = for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0)
+    out = model.with_(command=nominal, reading_poly=poly0)
+
+    ob = np.flatnonzero(~np.isnan(log.obs_bearing) & ~np.isnan(log.obs_reading))
+    ob = ob[np.argsort(log.obs_step[ob], kind="stable")]
+    step = log.obs_step[ob]
+    lm = log.landmark_xy[log.landmark_index[ob]]
+    win_of_step = np.floor((tp - t0) / window).astype(int)
+    n_win = int(win_of_step[-1]) + 1
+    win_start = np.searchsorted(win_of_step, np.arange(n_win))
+    w_of = win_of_step[step]
+    headings = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    spans = [(int(win_start[w]), int(win_start[w + 1]) if w + 1 < n_win else T) for w in range(n_win)]
+    rels = [dead_reckon(log.controls[a:b], dt[a:b], out, np.zeros(3)) for a, b in spans]
+    sels = [np.flatnonzero(w_of == w) for w in range(n_win)]
+    d_max = 1.5 * np.ptp(log.landmark_xy, axis=0).max() + 3.0
+
+    def place(poly):
+        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob])
+        starts, total = {}, 0.0
+        for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
+            if len(sel) >= 3:
+                starts[w], c = window_pose(lm[sel], dist[sel], log.obs_bearing[ob[sel]], rel[step[sel] - a], headings)
+                total += c
+        return starts, total
+
+    if p_hyp == 1.0:            # refine the slope of the range line by how well the windows agree
+        best = min((place(poly0 * f)[1], f) for f in np.geomspace(0.75, 1.33, 15))
+        poly0 = poly0 * best[1]
+        out = out.with_(reading_poly=poly0)
+    starts, _ = place(poly0)
+    poses = np.empty((T + 1, 3))
+    prev = None
+    for w, (a, b) in enumerate(spans):
+        start = starts.get(w, prev if prev is not None else np.array([*log.landmark_xy.mean(axis=0), 0.0]))
+        seg = dead_reckon(log.controls[a:b], dt[a:b], out, start)
+        poses[a:b + 1] = seg
+        prev = seg[-1]
+    lm_d = np.hypot(*(lm - poses[step, :2]).T)
+    res = log.obs_reading[ob] - np.polynomial.polynomial.polyval(lm_d, poly0)
+    out = out.with_(reading_sigma=float(max(1.4826 * np.median(np.abs(res)), 1e-6)))
+    return Start(poses, out, loc.hypothesis, loc.log_evidence, len(starts) / max(n_win, 1))
+
+
+# --------------------------------------------------------------------------- the fit
+
+def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1) -> Model:
+    """The paper's start for continuous commands: zero velocity for every command, a flat sensor line."""
+    if log.controls is None or log.control_names != ("v", "w"):
+        raise LogError("commands.csv: the continuous-command model needs columns 'v,w' "
+                       f"(this log has {','.join(log.control_names) or 'action'})")
+    both = int(np.sum(~np.isnan(log.obs_reading) & ~np.isnan(log.obs_bearing)))
+    if both < MIN_SIGHTINGS or log.pose_times[-1] - log.pose_times[0] < INIT_WINDOW:
+        raise LogError(f"observations.csv: {both} sightings with reading and bearing over "
+                       f"{log.pose_times[-1] - log.pose_times[0]:.1f} s; calibrating continuous commands "
+                       f"needs at least {MIN_SIGHTINGS} and {INIT_WINDOW:g} s (action-table logs need an 'action' column)")
+    poly = np.zeros(sensor_degree + 1)
+    poly[0] = float(np.nanmedian(log.obs_reading))
+    return Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=poly,
+                 reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
+                 motion_noise=np.array(PAPER_MOTION_NOISE), command=for_commands(log.controls, v_degree, w_degree))
+
+
+def identity_model(log: Log, like: Model) -> Model:
+    """The uncalibrated models: actual velocity = command, reading = distance; noise levels of ``like``."""
+    poly = np.zeros(len(like.reading_poly))
+    poly[1] = 1.0
+    cm = for_commands(log.controls, len(like.command.v_coef) - 1, len(like.command.w_coef) - 1, gain=1.0)
+    return like.with_(command=cm, reading_poly=poly)
+
+
+def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, rounds: int, iterations: int,
+                    seed: int, label: str, trace: list, stages: list, progress: Progress,
+                    freeze: bool = False, last_noise: bool = True):
+    """Rounds of LM, each followed by gating of outliers and re-estimating the noise levels."""
+    use = None
+    its, h = 0, None
+    problem = st = None
+    for r in range(rounds):
+        problem = Problem(log, lay, model, use)
+
+        def tick(c):
+            trace.append(c)
+            stages.append(label)
+            progress.step(0, cost=c)
+
+        st, h = least_squares(problem, state(poses, model), max_iterations=iterations, on_iteration=tick,
+                              freeze_parameters=freeze)
+        its += h.iterations
+        poses = st.poses
+        model = with_state(model, st)
+        if r < rounds - 1 or last_noise:
+            model = estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)
+            use = gate(log, poses[lay.obs_knot], model)
+        progress.step(1)
+    return model, poses, problem, st, its, bool(h.converged)
+
+
+def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
+        marginals: bool = True) -> Fit:
+    """Calibrate a continuous-command log: global start, coarse graph in rounds, finer graph, marginals."""
+    progress = progress or Progress()
+    t0 = time.perf_counter()
+    start = start or start_model(log)
+    trace, stages = [], []
+    progress.stage("initialise", None)
+    init = initialise(log, start)
+    model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float), bearing_sigma=float(start.bearing_sigma))
+    coarse = layout(log, COARSE_KNOT_DT)
+    progress.stage("coarse graph", COARSE_ROUNDS)
+    model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, init.poses[coarse.knots], COARSE_ROUNDS,
+                                               COARSE_ITERATIONS, seed, "coarse", trace, stages, progress)
+    poses = fill_in(log, model, coarse.knots, kp)
+    full = layout(log, FULL_KNOT_DT)
+    progress.stage("full graph", FULL_ROUNDS)
+    model, kp, problem, st, it2, converged = optimise_rounds(
+        log, full, model, poses[full.knots], FULL_ROUNDS, FULL_ITERATIONS, seed + 100, "full", trace, stages,
+        progress, last_noise=False)
+    poses = fill_in(log, model, full.knots, kp)
+    pose_std = np.full_like(poses, np.nan)
+    if marginals:
+        progress.stage("marginals", None)
+        m = gtsam.Marginals(problem.linearize(st), gtsam.VectorValues())
+        body = np.empty((full.n_poses, 3))
+        cov_xy = np.empty((full.n_poses, 2, 2))
+        for i in range(full.n_poses):
+            cov = m.marginalCovariance(X(i))
+            body[i], cov_xy[i] = np.sqrt(np.diag(cov)), cov[:2, :2]
+        knot_std = world_std(kp, body, cov_xy)
+        t = log.pose_times
+        pose_std = np.column_stack([np.interp(t, t[full.knots], knot_std[:, j]) for j in range(3)])
+        pstd = np.sqrt(np.diag(m.marginalCovariance(M(0))))
+        cstd = np.sqrt(np.diag(m.marginalCovariance(C(0))))
+        model = model.with_(command=model.command.with_params(st.params, pstd), reading_poly_std=cstd)
+    sel = problem.r_sel
+    d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[sel]
+    final_cost = problem.cost(st)
+    n = 3 * (full.n_poses - 1) + int(sel.sum()) + int(problem.b_sel.sum())
+    log_det = (np.sum(np.log(problem.motion_sigma)) + sel.sum() * np.log(model.reading_sigma)
+               + problem.b_sel.sum() * np.log(model.bearing_sigma))
+    ll = float(-final_cost - log_det - 0.5 * n * np.log(2 * np.pi))
+    model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
+                        fit={"method": "graph", "iterations": it1 + it2,
+                             "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": ll,
+                             "converged": converged, "knot_dt": FULL_KNOT_DT,
+                             "outliers_set_aside": {"reading": int((~sel & ~np.isnan(log.obs_reading)).sum()),
+                                                    "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())}})
+    return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=it1 + it2,
+               converged=converged, log_likelihood=ll,
+               notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
+                      "windows_placed": init.windows_placed, "start_model": init.model,
+                      "start_poses": init.poses, "knots": full.knots})

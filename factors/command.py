@@ -1,0 +1,64 @@
+"""Command-model factor: the displacement between two poses equals the commands integrated through f.
+
+Between two poses the robot ran k command steps; step j moves it forward by f_v(c_j) dt_j along
+the heading it had at the step's start and turns it by f_w(c_j) dt_j (no sideways motion). With
+f_v = Bv a and f_w = Bw b linear in the parameters ``p = [a, b]``, the predicted displacement and
+its derivative are sums over the steps; segments are padded to a common length with dt = 0.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .base import register, wrap
+
+
+def displacement(p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray):
+    """Predicted (dx, dy, dtheta) in the start frame, and its (n, 3, P) derivative w.r.t. ``p``.
+
+    ``Bv`` (n, k, nv), ``Bw`` (n, k, nw) are the basis rows of each step, ``dt`` (n, k) the step
+    lengths (0 for padding), ``p`` (n, nv + nw) or (nv + nw,).
+    """
+    nv = Bv.shape[-1]
+    p = np.broadcast_to(np.asarray(p, float), (Bv.shape[0], nv + Bw.shape[-1]))
+    v = np.einsum("nki,ni->nk", Bv, p[:, :nv])
+    w = np.einsum("nki,ni->nk", Bw, p[:, nv:])
+    turn = w * dt
+    phi = np.cumsum(turn, axis=1) - turn                  # heading at each step's start
+    Phi = np.cumsum(Bw * dt[..., None], axis=1) - Bw * dt[..., None]   # d phi / d b
+    c, s = np.cos(phi), np.sin(phi)
+    vdt = v * dt
+    d = np.stack([np.sum(c * vdt, 1), np.sum(s * vdt, 1), np.sum(turn, 1)], axis=1)
+    J = np.zeros((Bv.shape[0], 3, p.shape[1]))
+    J[:, 0, :nv] = np.einsum("nk,nki->ni", c * dt, Bv)
+    J[:, 1, :nv] = np.einsum("nk,nki->ni", s * dt, Bv)
+    J[:, 0, nv:] = -np.einsum("nk,nki->ni", s * vdt, Phi)
+    J[:, 1, nv:] = np.einsum("nk,nki->ni", c * vdt, Phi)
+    J[:, 2, nv:] = np.einsum("nk,nki->ni", dt, Bw)
+    return d, J
+
+
+def relative(a: np.ndarray, b: np.ndarray):
+    """Body-frame displacement of pose b from pose a, with its derivatives in GTSAM tangent space."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    dx, dy = c * ex + s * ey, -s * ex + c * ey
+    n = len(a)
+    Ha = np.zeros((n, 3, 3))
+    Ha[:, 0, 0] = Ha[:, 1, 1] = Ha[:, 2, 2] = -1.0
+    Ha[:, 0, 2], Ha[:, 1, 2] = dy, -dx
+    rel = b[:, 2] - a[:, 2]
+    cr, sr = np.cos(rel), np.sin(rel)
+    Hb = np.zeros((n, 3, 3))
+    Hb[:, 0, 0], Hb[:, 0, 1], Hb[:, 1, 0], Hb[:, 1, 1], Hb[:, 2, 2] = cr, -sr, sr, cr, 1.0
+    return np.column_stack([dx, dy, rel]), Ha, Hb
+
+
+@register("command", ("pose", "pose", "vector"))
+def error(a: np.ndarray, b: np.ndarray, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray):
+    """Body-frame displacement from pose a to pose b minus the commands integrated through f."""
+    if Bv.ndim == 2:                     # one segment bound into a CustomFactor
+        Bv, Bw, dt = Bv[None], Bw[None], dt[None]
+    rel, Ha, Hb = relative(a, b)
+    pred, Jp = displacement(p, Bv, Bw, dt)
+    e = np.column_stack([rel[:, 0] - pred[:, 0], rel[:, 1] - pred[:, 1], wrap(rel[:, 2] - pred[:, 2])])
+    return e, [Ha, Hb, -Jp]

@@ -1,0 +1,39 @@
+"""Hidden effects are found, named, added, and the error falls (INTERFACE sections 4 and 6).
+
+Each trial simulates a log with one catalog effect hidden at a moderate strength, calibrates the
+base model, diagnoses it, adds the verdict with ``calibrate --effect`` and diagnoses again
+(:mod:`casm_graph.hidden_effect`). Reduced size (CI): actuator lag, one seed, four minutes (its
+second diagnosis, after the lag is added, is the no-missing-effect case). ``CASM_FULL=1``: all eight effects and none, three seeds, six
+minutes; benchmarks/detection.py prints the same as a table (BENCHMARKS.md).
+"""
+import pytest
+
+from casm_graph import hidden_effect
+
+from .conftest import FULL
+
+MODERATE = {"actuator_lag": 0.3, "battery_fade": 0.02, "surface_friction": 0.15, "camera_latency": 0.1,
+            "lens_distortion": 0.3, "range_dependent_noise": 0.5, "false_detections": 0.05,
+            "landmark_offset": 0.2, "none": 0.0}
+EFFECTS = list(MODERATE) if FULL else ["actuator_lag"]
+SEEDS = [0, 1, 2] if FULL else [0]
+MINUTES = 6 if FULL else 4
+
+
+@pytest.mark.science
+@pytest.mark.parametrize("effect", EFFECTS)
+def test_hidden_effect_is_named_added_and_the_error_falls(effect, tmp_path):
+    want = "none" if effect == "none" else effect
+    trials = [hidden_effect.run(None if effect == "none" else effect, MODERATE[effect], seed, MINUTES,
+                                tmp_path / str(seed)) for seed in SEEDS]
+    hits = [t for t in trials if t.verdict == want]
+    print(f"{effect}={MODERATE[effect]:g}: verdict {[t.verdict for t in trials]} on seeds {SEEDS}; "
+          f"detected {len(hits)} of {len(trials)}")
+    need = len(trials) - 1 if len(trials) > 2 else len(trials)
+    assert len(hits) >= need, f"verdicts {[t.verdict for t in trials]}, want {want}"
+    if effect == "none":
+        return
+    for t in hits:
+        assert t.verdict_after == "none", f"after adding {effect}: {t.verdict_after}"
+        assert t.heldout_gain > 0                                   # held-out error falls
+        assert t.error_after["score"] < t.error_before["score"], (t.error_before, t.error_after)

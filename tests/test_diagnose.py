@@ -1,0 +1,151 @@
+"""The diagnosis's statistics, its verdict rule, and the CLI of diagnose, effects and compare on real files."""
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from casm_graph import calibrate
+from casm_graph import diagnose as D
+from casm_graph.effects import REGISTRY
+from casm_graph.residuals import Channel
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "casm_graph.cli", *map(str, args)], capture_output=True, text=True)
+
+
+def ar1(n, rho, rng):
+    e = rng.normal(size=n)
+    x = np.empty(n)
+    x[0] = e[0]
+    for i in range(1, n):
+        x[i] = rho * x[i - 1] + np.sqrt(1 - rho ** 2) * e[i]
+    return x
+
+
+def channel(residual, **cov):
+    n = len(residual)
+    return Channel("forward", residual, residual, np.arange(n) / 30.0, {k: np.asarray(v, float) for k, v in cov.items()})
+
+
+def test_ljung_box_separates_white_from_correlated():
+    rng = np.random.default_rng(0)
+    assert D.ljung_box(rng.normal(size=3000)) > 1e-3
+    assert D.ljung_box(ar1(3000, 0.3, rng)) < 1e-6
+
+
+def test_covariate_tests_find_a_nonlinear_dependence_and_rank_it_first():
+    rng = np.random.default_rng(1)
+    n = 4000
+    heading = rng.uniform(-np.pi, np.pi, n)
+    r = 0.4 * np.cos(2 * heading) + rng.normal(size=n)          # no linear trend at all
+    tests = D.covariate_tests(channel(r, heading=heading, speed=rng.uniform(0, 1, n)))
+    assert tests[0]["name"] == "heading" and tests[0]["kind"] == "mean"
+    assert tests[0]["p"] < 1e-6 and tests[0]["strength"] > 0.04
+    assert tests[1]["p"] > 1e-6
+
+
+def test_spread_dependence_is_found_too():
+    rng = np.random.default_rng(2)
+    d = rng.uniform(0.5, 4, 4000)
+    tests = D.covariate_tests(channel(rng.normal(size=4000) * (1 + 0.5 * d), distance=d))
+    assert tests[0]["kind"] == "spread" and tests[0]["p"] < 1e-6
+
+
+def test_autocorrelated_noise_does_not_fake_structure():
+    # a slowly wandering residual against time: plain ANOVA would call it significant
+    rng = np.random.default_rng(3)
+    r = ar1(6000, 0.97, rng)
+    t = np.arange(6000) / 30.0
+    raw = D.anova(r, D._groups(t, False), 1.0)
+    assert raw[1] < 1e-6                                        # the naive test is fooled
+    rep = D.channel_report({"forward": channel(r, time=t)})
+    assert D.structures(rep) == []
+
+
+def cand(name, dbic, held):
+    return D.Candidate(name, "motion", dbic, held, "because", -dbic / 2)
+
+
+def test_verdict_rule():
+    strong = {"channel": "forward", "name": "heading", "strength": 0.05, "p": 1e-12, "kind": "mean"}
+    assert D.verdict([cand("actuator_lag", -50, 10), cand("battery_fade", -20, 5)], [strong])[0] == "actuator_lag"
+    assert D.verdict([cand("actuator_lag", -50, -1)], [])[0] == "none"          # no held-out gain
+    assert D.verdict([cand("actuator_lag", -5, 3)], [])[0] == "none"            # BIC not convincing
+    assert D.verdict([cand("actuator_lag", 3, float("nan"))], [strong])[0] == "unexplained:heading"
+
+
+def test_effects_command_lists_the_catalog():
+    r = cli("effects")
+    assert r.returncode == 0
+    for name in ("battery_fade", "surface_friction", "actuator_lag", "camera_latency", "lens_distortion",
+                 "range_dependent_noise", "false_detections", "landmark_offset"):
+        assert name in r.stdout and name in REGISTRY
+
+
+@pytest.fixture(scope="module")
+def short_run(short_bundle, tmp_path_factory):
+    d = short_bundle[0]
+    out = tmp_path_factory.mktemp("run")
+    calibrate.run(d, out)
+    return d, out
+
+
+def test_diagnose_bad_input_is_one_clear_line(short_run, tmp_path):
+    d, run = short_run
+    r = cli("diagnose", d, "--model", tmp_path / "nope.json", "--out", tmp_path / "diag")
+    assert r.returncode == 2 and "missing model file" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "diag").exists()
+    data = json.loads((run / "model.json").read_text())
+    data["action_model"]["velocities"].pop(next(iter(data["action_model"]["velocities"])))
+    data["action_model"]["std"].pop(next(iter(data["action_model"]["std"])))
+    (tmp_path / "m.json").write_text(json.dumps(data))
+    r = cli("diagnose", d, "--model", tmp_path / "m.json", "--out", tmp_path / "diag")
+    assert r.returncode == 2 and "no velocity for action" in r.stderr and not (tmp_path / "diag").exists()
+    data["effects"] = {"gremlins": {"x": 1.0}}
+    (tmp_path / "m2.json").write_text(json.dumps(json.loads((run / "model.json").read_text()) | {"effects": data["effects"]}))
+    r = cli("diagnose", d, "--model", tmp_path / "m2.json", "--out", tmp_path / "diag")
+    assert r.returncode == 2 and "gremlins" in r.stderr and not (tmp_path / "diag").exists()
+
+
+def test_an_effect_the_log_cannot_support_is_refused(short_bundle, tmp_path):
+    d = short_bundle[0]
+    shutil.copytree(d, tmp_path / "log")
+    obs = (tmp_path / "log" / "observations.csv").read_text().splitlines()
+    head = obs[0].split(",")
+    keep = [i for i, c in enumerate(head) if c != "pan"]
+    (tmp_path / "log" / "observations.csv").write_text(
+        "\n".join(",".join(row.split(",")[i] for i in keep) for row in obs) + "\n")
+    r = cli("calibrate", tmp_path / "log", "--out", tmp_path / "r", "--effect", "lens_distortion")
+    assert r.returncode == 2 and "pan" in r.stderr and not (tmp_path / "r").exists()
+
+
+def test_compare_against_measured_tables(short_run, tmp_path):
+    d, run = short_run
+    truth = json.loads((d / "truth_model.json").read_text())
+    from casm_graph.simulate import true_reading
+    meas = tmp_path / "measured"
+    meas.mkdir()
+    rows = ["action,vx,vy,w"] + [f"{a},{v[0]},{v[1]},{v[2]}" for a, v in truth["action_model"]["velocities"].items()]
+    (meas / "actions.csv").write_text("\n".join(rows) + "\n")
+    dist = np.linspace(0.5, 3.5, 7)
+    (meas / "sensor.csv").write_text("distance,reading\n" + "".join(
+        f"{x},{y}\n" for x, y in zip(dist, true_reading(truth, dist))))
+    r = cli("compare", run / "model.json", "--measured", meas, "--out", tmp_path / "cmp")
+    assert r.returncode == 0, r.stderr
+    res = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    model = json.loads((run / "model.json").read_text())
+    learned = model["action_model"]["velocities"]
+    ids = [a for a in truth["action_model"]["velocities"] if a in learned]
+    diff = np.array([np.subtract(learned[a], truth["action_model"]["velocities"][a]) for a in ids])
+    assert np.allclose([res["actions"]["rms_difference"][k] for k in ("vx", "vy", "w")],
+                       np.sqrt(np.mean(diff ** 2, axis=0)))
+    assert res["actions"]["rms_difference"]["w"] < 0.1             # a 2-minute calibration is in the right place
+    assert len(res["sensor"]["points"]) == 7 and np.isfinite(res["sensor"]["rms_difference"])
+    assert "data:image/png;base64" in (tmp_path / "cmp" / "report.html").read_text()
+    (meas / "sensor.csv").write_text("distance,reading\n1.0,abc\n")
+    r = cli("compare", run / "model.json", "--measured", meas, "--out", tmp_path / "cmp2")
+    assert r.returncode == 2 and "sensor.csv" in r.stderr and not (tmp_path / "cmp2").exists()
