@@ -107,10 +107,18 @@ def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]
     return min(omega2, omega2_eff), p
 
 
+MOTION_CHANNELS = ("forward", "lateral", "turn")
+
+
 def covariate_tests(ch: Channel) -> list[dict]:
-    """Mean and spread dependence of a channel's residuals on each covariate, strongest first."""
+    """Mean (and for sensor channels spread) dependence of a channel's residuals on each covariate, strongest first.
+
+    Motion residuals are smoothing residuals: their spread follows each step's leverage (how many
+    sightings pin it) rather than physics, so motion channels are tested for their mean only.
+    """
     order = np.argsort(ch.time, kind="stable")
     r = ch.residual
+    motion = ch.name in MOTION_CHANNELS
     infl = _inflation(r[order])
     dev = np.abs(r - np.median(r))
     infl_dev = _inflation(dev[order])
@@ -119,8 +127,12 @@ def covariate_tests(ch: Channel) -> list[dict]:
         ok = np.isfinite(x) & np.isfinite(r)
         if ok.sum() < 3 * MIN_PER_BIN or np.ptp(x[ok]) == 0:
             continue
-        g = _groups(x[ok], name in CATEGORICAL)
+        cat = name in CATEGORICAL
+        g = _groups(x[ok], cat)
         s_mean, p_mean = anova(r[ok], g, infl)
+        if motion:
+            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"})
+            continue
         s_spread, p_spread = anova(dev[ok], g, infl_dev)
         if s_spread > s_mean:
             out.append({"name": name, "strength": s_spread, "p": p_spread, "kind": "spread"})

@@ -39,6 +39,9 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     model_path = Path(model_path)
     model = Model.load(model_path)
     log = load(log_dir)
+    if log.controls is not None:
+        raise LogError(f"{log_dir}: diagnose works on action-table logs; continuous commands (v,w) are not "
+                       f"supported yet")
     check_compatible(log, model, model_path.name)
     model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                         action_ids=log.action_ids, velocity_std=None)

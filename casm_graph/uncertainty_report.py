@@ -281,8 +281,8 @@ def write(out: Path, unc) -> None:
 <h2>Noise levels (emcee)</h2>
 <p>Sampled under their marginal likelihood with the poses, the velocity table, the sensor polynomial and the
 effects' least-squares parameters integrated out (Laplace approximation at the MAP, re-factored for every
-sample: {1000 * ch.seconds_per_evaluation:.1f} ms per evaluation on {unc.log.steps} steps, {ch.evaluations}
-evaluations). {ch.walkers} walkers, {ch.steps} steps, burn-in {ch.burn_in}, thinned by {ch.thin}:
+sample: {1000 * ch.seconds_per_evaluation:.1f} ms per evaluation, {1000 * ch.cpu_seconds_per_evaluation:.1f} ms of
+CPU, on {unc.log.steps} steps; {ch.evaluations} evaluations). {ch.walkers} walkers, {ch.steps} steps, burn-in {ch.burn_in}, thinned by {ch.thin}:
 {len(ch.samples)} samples; acceptance {ch.acceptance:.2f}.</p>
 {_table(unc)}
 <h3>Corner plot</h3>{png(cf)}

@@ -26,9 +26,9 @@ def ar1(n, rho, rng):
     return x
 
 
-def channel(residual, **cov):
+def channel(residual, name="reading", **cov):
     n = len(residual)
-    return Channel("forward", residual, residual, np.arange(n) / 30.0, {k: np.asarray(v, float) for k, v in cov.items()})
+    return Channel(name, residual, residual, np.arange(n) / 30.0, {k: np.asarray(v, float) for k, v in cov.items()})
 
 
 def test_ljung_box_separates_white_from_correlated():
@@ -53,6 +53,15 @@ def test_spread_dependence_is_found_too():
     d = rng.uniform(0.5, 4, 4000)
     tests = D.covariate_tests(channel(rng.normal(size=4000) * (1 + 0.5 * d), distance=d))
     assert tests[0]["kind"] == "spread" and tests[0]["p"] < 1e-6
+
+
+def test_motion_channels_are_tested_for_their_mean_only():
+    # smoothing residuals' spread follows leverage, not physics
+    rng = np.random.default_rng(4)
+    d = rng.uniform(0.5, 4, 4000)
+    r = rng.normal(size=4000) * (1 + 0.5 * d)
+    assert all(t["kind"] == "mean" for t in D.covariate_tests(channel(r, name="forward", speed=d)))
+    assert D.covariate_tests(channel(r, name="forward", speed=d))[0]["p"] > 1e-6
 
 
 def test_autocorrelated_noise_does_not_fake_structure():
