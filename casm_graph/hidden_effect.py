@@ -52,10 +52,11 @@ class Trial:
 
 
 def run(effect: str | None, value: float, seed: int, minutes: float, workdir: str | Path,
-        after: bool = True, workers: int = 2, effect_class=None) -> Trial:
+        after: bool = True, workers: int = 2, effect_class=None, candidates=None) -> Trial:
     """Simulate ``effect=value`` hidden in a ``minutes`` log, diagnose the base model, then add the verdict.
 
-    ``effect_class`` hides a user's effect (not in the catalog) and lets the diagnosis consider it.
+    ``effect_class`` hides a user's effect (not in the catalog) and lets the diagnosis consider it;
+    ``candidates`` narrows the effects the diagnosis tries (default: all).
     After the first diagnosis the verdict's effect (when it names one) is added with ``calibrate
     --effect`` and the log diagnosed again.
     """
@@ -67,7 +68,7 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
     write(log, truth, w / "log")
     _, fit = calibrate.run(w / "log", w / "run", seed=seed)
     diag = diagnose_run.run(w / "log", w / "run" / "model.json", w / "diag", workers=workers,
-                            extra_effects=extra)
+                            extra_effects=extra, candidates=candidates)
     cands = [c.to_json() for c in diag.candidates]
     gain = next((c["heldout_nll_drop"] for c in cands if c["effect"] == effect), None)
     trial = Trial(effect, value, seed, minutes, diag.verdict, cands, gain, model_error(fit.model, truth),
@@ -77,7 +78,7 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
         cls = effect_class if effect_class is not None and named == effect_class.name else named
         _, fit2 = calibrate.run(w / "log", w / "run_fixed", effects=(cls,), seed=seed)
         diag2 = diagnose_run.run(w / "log", w / "run_fixed" / "model.json", w / "diag_fixed", workers=workers,
-                                 extra_effects=extra)
+                                 extra_effects=extra, candidates=candidates)
         trial.error_after = model_error(fit2.model, truth)
         trial.verdict_after = diag2.verdict
         trial.fitted = fit2.model.effects

@@ -140,7 +140,8 @@ def assess(unc) -> dict:
         s = float(m.reading_std(mid))
         weak.append(f"distances {a:.1f} to {b:.1f} m: the robot stood there but saw no landmark from there, so the "
                     f"sensor curve is extrapolated (std {s:.3g} at {mid:.2f} m)")
-        where = "closer than" if b <= m.distance_range[0] + 1e-9 else ("farther than" if a >= m.distance_range[1] - 1e-9 else "between")
+        lo_seen, hi_seen = m.distance_range
+        where = "closer than" if b <= lo_seen + 1e-9 else ("farther than" if a >= hi_seen - 1e-9 else "between")
         advice.append(f"sightings at {a:.1f} to {b:.1f} m ({where} any seen), if the sensor can detect "
                       f"landmarks there; otherwise do not use the curve outside {m.distance_range[0]:.2f} to "
                       f"{m.distance_range[1]:.2f} m")
@@ -277,12 +278,13 @@ def write(out: Path, unc) -> None:
 <h1>How well does this log pin the model down?</h1>{warn}
 <h2>Known, and how well</h2>{lst(verdict['known'])}
 <h2>What the log cannot pin down</h2>{lst(verdict['weak']) if verdict['weak'] else '<p>Nothing stands out.</p>'}
-<h2>What to collect next</h2>{lst(verdict['advice']) if verdict['advice'] else '<p>Nothing urgent: every quantity is pinned down.</p>'}
+<h2>What to collect next</h2>{lst(verdict['advice']) if verdict['advice'] else '<p>Nothing urgent.</p>'}
 <h2>Noise levels (emcee)</h2>
 <p>Sampled under their marginal likelihood with the poses, the velocity table, the sensor polynomial and the
 effects' least-squares parameters integrated out (Laplace approximation at the MAP, re-factored for every
 sample: {1000 * ch.seconds_per_evaluation:.1f} ms per evaluation, {1000 * ch.cpu_seconds_per_evaluation:.1f} ms of
-CPU, on {unc.log.steps} steps; {ch.evaluations} evaluations). {ch.walkers} walkers, {ch.steps} steps, burn-in {ch.burn_in}, thinned by {ch.thin}:
+CPU, on {unc.log.steps} steps; {ch.evaluations} evaluations).
+{ch.walkers} walkers, {ch.steps} steps, burn-in {ch.burn_in}, thinned by {ch.thin}:
 {len(ch.samples)} samples; acceptance {ch.acceptance:.2f}.</p>
 {_table(unc)}
 <h3>Corner plot</h3>{png(cf)}

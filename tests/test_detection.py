@@ -2,8 +2,10 @@
 
 Each trial simulates a log with one catalog effect hidden at a moderate strength, calibrates the
 base model, diagnoses it, adds the verdict with ``calibrate --effect`` and diagnoses again
-(:mod:`casm_graph.hidden_effect`). Reduced size (CI): actuator lag, one seed, four minutes (its
-second diagnosis, after the lag is added, is the no-missing-effect case). ``CASM_FULL=1``: all eight effects and none, three seeds, six
+(:mod:`casm_graph.hidden_effect`). Reduced size (CI): actuator lag, one seed, six minutes, the
+diagnosis choosing between the lag and its closest look-alike (camera latency); its second
+diagnosis, after the lag is added, is the no-missing-effect case. Held-out folds need about two
+minutes of log each: on three-minute logs the lag's held-out gain is negative (BENCHMARKS.md). ``CASM_FULL=1``: all eight effects and none, three seeds, six
 minutes; benchmarks/detection.py prints the same as a table (BENCHMARKS.md).
 """
 import pytest
@@ -17,7 +19,8 @@ MODERATE = {"actuator_lag": 0.3, "battery_fade": 0.02, "surface_friction": 0.15,
             "landmark_offset": 0.2, "none": 0.0}
 EFFECTS = list(MODERATE) if FULL else ["actuator_lag"]
 SEEDS = [0, 1, 2] if FULL else [0]
-MINUTES = 6 if FULL else 4
+MINUTES = 6
+CANDIDATES = None if FULL else ["actuator_lag", "camera_latency"]
 
 
 @pytest.mark.science
@@ -25,7 +28,7 @@ MINUTES = 6 if FULL else 4
 def test_hidden_effect_is_named_added_and_the_error_falls(effect, tmp_path):
     want = "none" if effect == "none" else effect
     trials = [hidden_effect.run(None if effect == "none" else effect, MODERATE[effect], seed, MINUTES,
-                                tmp_path / str(seed)) for seed in SEEDS]
+                                tmp_path / str(seed), candidates=CANDIDATES) for seed in SEEDS]
     hits = [t for t in trials if t.verdict == want]
     print(f"{effect}={MODERATE[effect]:g}: verdict {[t.verdict for t in trials]} on seeds {SEEDS}; "
           f"detected {len(hits)} of {len(trials)}")

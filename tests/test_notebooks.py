@@ -8,7 +8,7 @@ from nbclient import NotebookClient
 
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 REDUCED = {"CASM_NB_MINUTES": "3", "CASM_NB_EKFS_MAX": "40", "CASM_NB_UNC_STEPS": "200", "CASM_NB_TRIALS": "1",
-           "CASM_NB_CANDIDATES": "3"}
+           "CASM_NB_CANDIDATES": "2"}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])

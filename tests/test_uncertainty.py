@@ -5,7 +5,6 @@ The likelihood tests linearise at the simulator's truth (a valid MAP start that 
 calibration, so they stay fast); the coverage test runs the whole pipeline from the paper's start.
 """
 import json
-import os
 
 import gtsam
 import numpy as np
@@ -209,13 +208,13 @@ def test_coverage_of_credible_intervals():
     autocorrelation times long, and at least 75 % of the velocity table's Laplace intervals cover
     the truth (one log's intervals share one noise posterior, so a single seed's coverage
     scatters more than a binomial count would). Full (CASM_FULL=1):
-    eight seeds, each sampled quantity inside in at least 6 of 8 runs (a 90 % interval misses
+    eight 8-minute seeds, each sampled quantity inside in at least 6 of 8 runs (a 90 % interval misses
     3 or more of 8 with probability 4 %) and the table 80-97 %.
     """
     seeds = range(8) if FULL else [3]
     inside, vel = {}, []
     for seed in seeds:
-        log, truth = simulate(SimConfig(minutes=3.0 if FULL else 2.0, seed=seed))
+        log, truth = simulate(SimConfig(minutes=8.0 if FULL else 2.0, seed=seed))
         fit = METHODS["graph"](log, paper_start(log), seed=seed, marginals=False)
         unc = compute(log, fit.model, fit.poses, seed=seed, truth=truth, max_steps=5000 if FULL else 800)
         assert np.all(np.isfinite(unc.chain.tau)) and np.max(unc.chain.tau) < unc.chain.steps / 20
