@@ -13,7 +13,6 @@ import argparse
 import json
 import tempfile
 from collections import defaultdict
-from pathlib import Path
 
 from casm_graph import hidden_effect
 

@@ -110,7 +110,7 @@ def main():
     print(f"| seconds | {t_o:.3f} | {t_f:.2f} | {t_f / t_o:.0f}x |")
     print(f"| smoothed position RMS error (m) | {err(mu_o):.3f} | {err(mu_f):.3f} | |")
     t = time.perf_counter()
-    fit = METHODS["ekfs-em"](log, paper_start(log), max_iterations=10, patience=1000)
+    METHODS["ekfs-em"](log, paper_start(log), max_iterations=10, patience=1000)
     print(f"\nEKFS-EM: {(time.perf_counter() - t) / 10:.2f} s per iteration (10 iterations, from the paper's start)")
     lay = G.layout(log, m, 1)
     m2 = m.with_(motion_noise=np.array([0.002, 0.002, 0.004]))

@@ -54,7 +54,7 @@ def table(results: dict) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "mrclam7"))
+    p.add_argument("--data", default=str(mrclam.find_data()))
     p.add_argument("--robots", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     p.add_argument("--minutes", type=float, default=None, help="first M minutes only (default: whole log)")
     p.add_argument("--sensor-degree", type=int, default=3)

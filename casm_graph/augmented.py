@@ -11,7 +11,7 @@ differentiated through the table row alone, not through other motion effects.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -470,7 +470,7 @@ def marginals(problem: EffectProblem, st: AState) -> tuple[np.ndarray, np.ndarra
     conditional covariance from the chain.
     """
     D, B, F, gp, Htt, gt = problem.normal_equations(st)
-    K, n = D.shape[0], F.shape[2]
+    n = F.shape[2]
     Xs = chain._chain_solve(D, B, np.ascontiguousarray(F), 0.0)           # Hpp^-1 F
     Ff, Xf = F.reshape(-1, n), Xs.reshape(-1, n)
     cov_t = np.linalg.inv(Htt - Ff.T @ Xf)

@@ -82,7 +82,7 @@ def solve_arrow(D, B, F, gp, Htt, gt, lam):
     Eliminates the pose chain first (as GTSAM does with the parameters ordered last), then solves
     the dense Schur complement on the parameters.
     """
-    K, n = D.shape[0], F.shape[2]
+    n = F.shape[2]
     R = np.concatenate([gp[:, :, None], F], axis=2)
     Xs = _chain_solve(D, B, np.ascontiguousarray(R), lam)
     if n == 0:

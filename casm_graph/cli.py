@@ -87,11 +87,16 @@ def _calibrate(args) -> int:
             print(f"  {k} {v:.4g}")
         print(f"  wrote {args.out}/model.json, trajectory.csv, report.html")
         return 0
+    import warnings
     try:
-        log, fit = run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
-                       effects=tuple(args.effect), seed=args.seed, progress=bar)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", RuntimeWarning)
+            log, fit = run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
+                           effects=tuple(args.effect), seed=args.seed, progress=bar)
     finally:
         bar.close()
+    for msg in dict.fromkeys(str(w.message) for w in caught):
+        print(f"casm-graph: warning: {msg}", file=sys.stderr)
     m = fit.model
     print(f"calibrated {args.log} with {args.method} in {m.fit['seconds']:.1f} s "
           f"({m.fit['iterations']} iterations, converged={m.fit['converged']})")
@@ -136,7 +141,7 @@ def _uncertainty(args) -> int:
     from .uncertainty_run import run
     bar = Bar(enabled=not args.quiet)
     try:
-        with warnings.catch_warnings(record=True) as caught:
+        with warnings.catch_warnings(record=True):
             warnings.simplefilter("always", RuntimeWarning)
             unc = run(args.log, args.model, args.out, priors=tuple(args.prior), walkers=args.walkers,
                       max_steps=args.max_steps, seed=args.seed, progress=bar)

@@ -17,6 +17,7 @@ aside sightings more than ``GATE`` sigmas off, and a finer graph (0.25 s knots) 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import gtsam
@@ -31,9 +32,10 @@ from .command_model import CommandModel, for_commands
 from .initialise import locate
 from .log import Log, LogError, wrap
 from .methods.base import Fit, Progress
-from .methods.graph import world_std
+from .methods.graph import RIDGE_WARNING, world_std
 from .model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
 from .solve import least_squares
+from .solve import marginals as gaussian_marginals
 
 PARAM_PRIOR_SIGMA = 10.0
 POLY_PRIOR_SIGMA = 1e4
@@ -470,7 +472,9 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     pose_std = np.full_like(poses, np.nan)
     if marginals:
         progress.stage("marginals", None)
-        m = gtsam.Marginals(problem.linearize(st), gtsam.VectorValues())
+        m, ridge = gaussian_marginals(problem.linearize(st), problem.keys_dims())
+        if ridge:
+            warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
         body = np.empty((full.n_poses, 3))
         cov_xy = np.empty((full.n_poses, 2, 2))
         for i in range(full.n_poses):

@@ -33,10 +33,10 @@ from scipy import stats
 
 from . import effect_fit
 from .augmented import instantiate
-from .effects import REGISTRY, Effect
+from .effects import REGISTRY
 from .log import Log, LogError
 from .model import Model
-from .residuals import CATEGORICAL, MOTION_COVARIATES, SENSOR_COVARIATES, Channel, channels
+from .residuals import CATEGORICAL, Channel, channels
 
 SCHEMA = "casm-graph/diagnosis/1"
 BINS = 10

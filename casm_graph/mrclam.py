@@ -9,12 +9,29 @@ poses interpolated to the pose times. ``mrclam.json`` records where it came from
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 
 from .log import Log, LogError, wrap
 from .log import write as write_bundle
+
+
+WORKPLACE_DATA = Path("/work/shared/data/mrclam7")
+
+
+def find_data() -> Path:
+    """Where the run-7 files are: $CASM_MRCLAM, else a ``shared/data/mrclam7`` beside the working
+    directory or the package (or any of their parents), else the workplace's shared copy."""
+    if os.environ.get("CASM_MRCLAM"):
+        return Path(os.environ["CASM_MRCLAM"])
+    here = [Path.cwd().resolve(), Path(__file__).resolve().parent]
+    for start in here:
+        for d in (start, *start.parents):
+            if (d / "shared" / "data" / "mrclam7" / "Robot1_Odometry.dat").is_file():
+                return d / "shared" / "data" / "mrclam7"
+    return WORKPLACE_DATA
 
 
 def read_dat(path: Path, columns: int) -> np.ndarray:

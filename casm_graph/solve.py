@@ -31,6 +31,30 @@ def _damping(keys_dims, lam: float) -> gtsam.GaussianFactorGraph:
     return g
 
 
+def marginals(lin: gtsam.GaussianFactorGraph, keys_dims) -> tuple[gtsam.Marginals, float]:
+    """GTSAM marginals of ``lin``; an ill-conditioned system is retried with a tiny ridge.
+
+    Returns the marginals and the ridge used (0 when none was needed), relative to the largest
+    diagonal entry of the information matrix, so callers can say the std are regularised.
+    """
+    try:
+        return gtsam.Marginals(lin, gtsam.VectorValues()), 0.0
+    except RuntimeError:
+        pass
+    _, col, val = lin.sparseJacobian_()                   # 1-based (row, column, value); b is the last column
+    n = sum(d for _, d in keys_dims)
+    keep = col <= n
+    top = float(np.bincount(col[keep].astype(int), weights=val[keep] ** 2).max())
+    for rel in (1e-10, 1e-8, 1e-6):
+        system = lin.clone()
+        system.push_back(_damping(keys_dims, rel * top))
+        try:
+            return gtsam.Marginals(system, gtsam.VectorValues()), rel
+        except RuntimeError:
+            continue
+    raise RuntimeError("the fitted model leaves the trajectory undetermined: no marginals even with a ridge")
+
+
 def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol: float = 1e-6,
                   lam: float = 1e-6, on_iteration=None, freeze_parameters: bool = False) -> tuple[State, History]:
     """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history.

@@ -4,7 +4,6 @@ The data are the real run-7 files in ../shared/data/mrclam7 (CASM_MRCLAM overrid
 """
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,10 +13,10 @@ from casm_graph import continuous as CT
 from casm_graph import groundtruth, mrclam
 from casm_graph.cli import main
 from casm_graph.command_model import CommandModel, for_commands
-from casm_graph.log import LogError, load
+from casm_graph.log import load
 from casm_graph.model import Model
 
-DATA = Path(os.environ.get("CASM_MRCLAM", Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "mrclam7"))
+DATA = mrclam.find_data()
 needs_data = pytest.mark.skipif(not (DATA / "Robot1_Odometry.dat").is_file(), reason=f"no MRCLAM data at {DATA}")
 FULL = os.environ.get("CASM_FULL") == "1"
 

@@ -1,7 +1,6 @@
 """battery_fade: every velocity shrinks in proportion to the time the robot has been running."""
 from __future__ import annotations
 
-import numpy as np
 
 from .base import Effect, register
 

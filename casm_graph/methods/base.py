@@ -6,7 +6,6 @@ from typing import Callable
 
 import numpy as np
 
-from ..log import Log
 from ..model import Model
 
 

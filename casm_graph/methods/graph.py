@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import gtsam
@@ -25,7 +26,8 @@ from ..initialise import initialise
 from ..turns import realias
 from ..log import Log, wrap
 from ..model import Model
-from ..solve import History, least_squares
+from ..solve import least_squares
+from ..solve import marginals as gaussian_marginals
 from .base import Fit, Progress, register
 
 COARSE_STRIDE = 10
@@ -35,6 +37,8 @@ COARSE_RELAX = 1.0
 REALIAS_AFTER = (2, 4)
 FULL_ITERATIONS = 15
 FULL_ROUNDS = 2
+RIDGE_WARNING = ("the fitted graph is nearly singular (a poor fit or a log that cannot pin the model down): "
+                 "standard deviations computed with a ridge of {:g} x the largest information; treat them as lower bounds")
 
 
 def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0, relax: float = 1.0) -> Model:
@@ -164,10 +168,12 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     converged = h.converged
     final_cost = problem.cost(st)
 
-    pose_std = np.full_like(poses, np.nan)
+    pose_std, ridge = np.full_like(poses, np.nan), None
     if marginals:
         progress.stage("marginals", None)
-        m = gtsam.Marginals(problem.linearize(st), gtsam.VectorValues())
+        m, ridge = gaussian_marginals(problem.linearize(st), problem.keys_dims())
+        if ridge:
+            warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
         cov_xy = np.empty((full.n_poses, 2, 2))
         for i in range(full.n_poses):
             cov = m.marginalCovariance(X(i))
@@ -189,4 +195,4 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
-                      "realiased_actions": realiased})
+                      "realiased_actions": realiased, "marginals_ridge": ridge})
