@@ -98,6 +98,9 @@ def _calibrate(args) -> int:
     for msg in dict.fromkeys(str(w.message) for w in caught):
         print(f"casm-graph: warning: {msg}", file=sys.stderr)
     m = fit.model
+    if not m.fit.get("converged", True):
+        print("casm-graph: warning: the optimiser stopped before converging (see the cost per iteration in "
+              f"{args.out}/report.html)", file=sys.stderr)
     print(f"calibrated {args.log} with {args.method} in {m.fit['seconds']:.1f} s "
           f"({m.fit['iterations']} iterations, converged={m.fit['converged']})")
     print(f"  reading sigma {m.reading_sigma:.3f}, bearing sigma {m.bearing_sigma:.3f} rad")

@@ -148,7 +148,14 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
             d = np.linspace(*m.distance_range, 200)
             facts.append(("sensor curve RMS vs truth", f"{np.sqrt(np.mean((m.reading(d) - true_reading(truth, d)) ** 2)):.3f}"))
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
-    body = [f"<h1>casm-graph calibration</h1><table>{info}</table>",
+    warn = ""
+    if fit.notes.get("marginals_ridge"):
+        warn = ("<p><b>Warning:</b> the fitted graph is nearly singular (a poor fit, or a log that cannot pin "
+                f"the model down); the standard deviations were computed with a ridge of "
+                f"{fit.notes['marginals_ridge']:g} x the largest information and are lower bounds.</p>")
+    if not f.get("converged", True):
+        warn += "<p><b>Warning:</b> the optimiser stopped before converging; check the cost per iteration.</p>"
+    body = [f"<h1>casm-graph calibration</h1>{warn}<table>{info}</table>",
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, truth)),
             "<h2>Cost per iteration</h2>", png(cost_figure(fit)),
             "<h2>Trajectory</h2>", png(trajectory_figure(log, fit, std)),
