@@ -85,6 +85,13 @@ def test_verdict_rule():
     assert D.verdict([cand("actuator_lag", -50, -1)], [])[0] == "none"          # no held-out gain
     assert D.verdict([cand("actuator_lag", -5, 3)], [])[0] == "none"            # BIC not convincing
     assert D.verdict([cand("actuator_lag", 3, float("nan"))], [strong])[0] == "unexplained:heading"
+    # a held-out loss is outweighed only when the candidate was built for the strongest structure
+    lens = {"channel": "reading", "name": "image_angle", "strength": 0.04, "p": 1e-30, "kind": "mean"}
+    explains = {"lens_distortion": (("reading", "image_angle"),), "actuator_lag": (("forward", "heading"),)}
+    assert D.verdict([cand("lens_distortion", -563, -27.7)], [lens], explains)[0] == "lens_distortion"
+    assert D.verdict([cand("lens_distortion", -563, -27.7)], [strong], explains)[0] == "unexplained:heading"
+    assert D.verdict([cand("lens_distortion", -5, -27.7)], [lens], explains)[0] == "unexplained:image_angle"
+    assert D.verdict([cand("actuator_lag", -50, -1)], [lens, strong], explains)[0] == "unexplained:image_angle"
 
 
 def test_effects_command_lists_the_catalog():
