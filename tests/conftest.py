@@ -1,9 +1,12 @@
 """Shared fixtures: simulated logs written to real CSV bundles."""
 import os
 
-import pytest
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")    # two test workers (and diagnose's pools) share two cores: no BLAS threads
 
-from casm_graph.simulate import SimConfig, simulate, write
+import pytest  # noqa: E402
+
+from casm_graph.simulate import SimConfig, simulate, write  # noqa: E402
 
 FULL = os.environ.get("CASM_FULL") == "1"
 

@@ -9,6 +9,8 @@ from casm_graph.methods import METHODS
 from casm_graph.model import paper_start
 from casm_graph.simulate import SimConfig, simulate
 
+pytestmark = pytest.mark.xdist_group("test_crosscheck")    # its module fixtures are costly: one worker
+
 PAPER_SIM_RMS = np.array([0.02306, 0.01834, 0.086])
 
 

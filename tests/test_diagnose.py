@@ -12,6 +12,8 @@ from casm_graph import diagnose as D
 from casm_graph.effects import REGISTRY
 from casm_graph.residuals import Channel
 
+pytestmark = pytest.mark.xdist_group("test_diagnose")    # its module fixtures are costly: one worker
+
 
 def cli(*args):
     return subprocess.run([sys.executable, "-m", "casm_graph.cli", *map(str, args)], capture_output=True, text=True)

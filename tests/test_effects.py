@@ -9,6 +9,8 @@ from casm_graph.model import paper_start
 from casm_graph.simulate import SimConfig, simulate
 from casm_graph.solve import _damping
 
+pytestmark = pytest.mark.xdist_group("test_effects")    # its module fixtures are costly: one worker
+
 ALL = sorted(REGISTRY)
 
 

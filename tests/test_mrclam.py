@@ -16,6 +16,8 @@ from casm_graph.command_model import CommandModel, for_commands
 from casm_graph.log import load
 from casm_graph.model import Model
 
+pytestmark = pytest.mark.xdist_group("test_mrclam")    # its module fixtures are costly: one worker
+
 DATA = mrclam.find_data()
 needs_data = pytest.mark.skipif(not (DATA / "Robot1_Odometry.dat").is_file(), reason=f"no MRCLAM data at {DATA}")
 FULL = os.environ.get("CASM_FULL") == "1"
