@@ -16,6 +16,7 @@ from casm_graph import ekfs
 from casm_graph import graph as G
 from casm_graph import uncertainty as U
 from casm_graph.augmented import EffectProblem
+from casm_graph.log import LogError
 from casm_graph.cli import main
 from casm_graph.methods import METHODS
 from casm_graph.methods.ekfs_em import _observations
@@ -145,7 +146,7 @@ def test_priors_parse_and_reject():
     name, pr = parse_prior("reading_sigma=lognormal:1.0:0.3")
     assert name == "reading_sigma" and pr.kind == "lognormal"
     for bad in ("reading_sigma", "x=beta:1:2", "x=uniform:2:1", "x=loguniform:0:1", "x=normal:a:1"):
-        with pytest.raises(Exception):
+        with pytest.raises(LogError, match="--prior"):
             parse_prior(bad)
 
 
