@@ -27,6 +27,7 @@ from gtsam.symbol_shorthand import C, M, X
 
 import factors
 
+from . import graph as G
 from . import noise
 from .command_model import CommandModel, for_commands
 from .initialise import locate
@@ -155,14 +156,7 @@ class Problem:
         Jc = np.concatenate([rJ[1], np.zeros((len(self.b_knot), D))])
         e = np.concatenate([re, be])
         order = np.argsort(knot, kind="stable")
-        knot, Jp, Jc, e = knot[order], Jp[order], Jc[order], e[order]
-        cuts = np.flatnonzero(np.diff(knot)) + 1
-        for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
-            nm = gtsam.noiseModel.Unit.Create(int(s1 - s0))
-            if poses_only:
-                g.add(X(int(knot[s0])), Jp[s0:s1], -e[s0:s1], nm)
-            else:
-                g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1], nm)
+        G.add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only)
         if poses_only:
             return g
         Pn = self.n_params
@@ -256,31 +250,14 @@ def step_velocities(log: Log, model: Model) -> np.ndarray:
 
 def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
-    v = model.command.velocities(controls) * dt[:, None]
-    th = start[2] + np.concatenate([[0.0], np.cumsum(v[:, 2])])
-    c, s = np.cos(th[:-1]), np.sin(th[:-1])
-    x = start[0] + np.concatenate([[0.0], np.cumsum(c * v[:, 0] - s * v[:, 1])])
-    y = start[1] + np.concatenate([[0.0], np.cumsum(s * v[:, 0] + c * v[:, 1])])
-    return np.column_stack([x, y, wrap(th)])
+    poses = G.integrate(start, model.command.velocities(controls) * dt[:, None])
+    poses[:, 2] = wrap(poses[:, 2])
+    return poses
 
 
 def fill_in(log: Log, model: Model, knots: np.ndarray, knot_poses: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses: each knot-to-knot stretch dead-reckoned, its closure error spread linearly."""
-    v = step_velocities(log, model) * log.dt[:, None]
-    th_rel = np.concatenate([[0.0], np.cumsum(v[:, 2])])
-    out = np.empty((log.steps + 1, 3))
-    for i in range(len(knots) - 1):
-        a, b = int(knots[i]), int(knots[i + 1])
-        th = knot_poses[i, 2] + th_rel[a:b + 1] - th_rel[a]
-        c, s = np.cos(th[:-1]), np.sin(th[:-1])
-        x = knot_poses[i, 0] + np.concatenate([[0.0], np.cumsum(c * v[a:b, 0] - s * v[a:b, 1])])
-        y = knot_poses[i, 1] + np.concatenate([[0.0], np.cumsum(s * v[a:b, 0] + c * v[a:b, 1])])
-        err = np.array([knot_poses[i + 1, 0] - x[-1], knot_poses[i + 1, 1] - y[-1],
-                        wrap(knot_poses[i + 1, 2] - th[-1])])
-        frac = np.linspace(0.0, 1.0, b - a + 1)[:, None]
-        out[a:b + 1] = np.column_stack([x, y, th]) + frac * err
-    out[:, 2] = wrap(out[:, 2])
-    return out
+    return G.fill_between(knots, knot_poses, step_velocities(log, model) * log.dt[:, None])
 
 
 # --------------------------------------------------------------------------- global start

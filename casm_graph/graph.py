@@ -164,14 +164,7 @@ class Problem:
         Jc = np.concatenate([r.reading_J[1], np.zeros((len(self.b_knot), D))])
         e = np.concatenate([r.reading_e, r.bearing_e])
         order = np.argsort(knot, kind="stable")
-        knot, Jp, Jc, e = knot[order], Jp[order], Jc[order], e[order]
-        cuts = np.flatnonzero(np.diff(knot)) + 1
-        for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
-            noise = gtsam.noiseModel.Unit.Create(int(s1 - s0))
-            if poses_only:
-                g.add(X(int(knot[s0])), Jp[s0:s1], -e[s0:s1], noise)
-            else:
-                g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1], noise)
+        add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only)
         if poses_only:
             return g
         eye3 = np.eye(3) / VELOCITY_PRIOR_SIGMA
@@ -276,11 +269,39 @@ def parameters_of(vals: gtsam.Values, model: Model) -> Model:
     return model.with_(velocities=vel, reading_poly=np.array(vals.atVector(C(0))))
 
 
+def integrate(start: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses from ``start`` adding the body-frame displacements ``steps`` (T, 3), heading held over each step."""
+    th = start[2] + np.concatenate([[0.0], np.cumsum(steps[:, 2])])
+    c, s = np.cos(th[:-1]), np.sin(th[:-1])
+    x = start[0] + np.concatenate([[0.0], np.cumsum(c * steps[:, 0] - s * steps[:, 1])])
+    y = start[1] + np.concatenate([[0.0], np.cumsum(s * steps[:, 0] + c * steps[:, 1])])
+    return np.column_stack([x, y, th])
+
+
+def fill_between(knots: np.ndarray, knot_poses: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses: each knot-to-knot stretch integrated from its knot, its closure error spread linearly."""
+    out = np.empty((len(steps) + 1, 3))
+    for i in range(len(knots) - 1):
+        a, b = int(knots[i]), int(knots[i + 1])
+        seg = integrate(knot_poses[i], steps[a:b])
+        err = np.array([knot_poses[i + 1, 0] - seg[-1, 0], knot_poses[i + 1, 1] - seg[-1, 1],
+                        wrap(knot_poses[i + 1, 2] - seg[-1, 2])])
+        out[a:b + 1] = seg + np.linspace(0.0, 1.0, b - a + 1)[:, None] * err
+    out[:, 2] = wrap(out[:, 2])
+    return out
+
+
+def add_sightings(g: gtsam.GaussianFactorGraph, knot, Jp, Jc, e, poses_only: bool) -> None:
+    """Linearised reading and bearing rows as one Jacobian factor per knot (rows sorted by knot)."""
+    cuts = np.flatnonzero(np.diff(knot)) + 1
+    for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
+        noise = gtsam.noiseModel.Unit.Create(int(s1 - s0))
+        if poses_only:
+            g.add(X(int(knot[s0])), Jp[s0:s1], -e[s0:s1], noise)
+        else:
+            g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1], noise)
+
+
 def dead_reckon(log: Log, model: Model, start: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses from ``start`` integrating the table velocities with the per-step model."""
-    v = model.velocity_of(log.action) * log.dt[:, None]
-    th = start[2] + np.concatenate([[0.0], np.cumsum(v[:, 2])])
-    c, s = np.cos(th[:-1]), np.sin(th[:-1])
-    x = start[0] + np.concatenate([[0.0], np.cumsum(c * v[:, 0] - s * v[:, 1])])
-    y = start[1] + np.concatenate([[0.0], np.cumsum(s * v[:, 0] + c * v[:, 1])])
-    return np.column_stack([x, y, th])
+    return integrate(start, model.velocity_of(log.action) * log.dt[:, None])

@@ -24,7 +24,7 @@ from .. import graph as G
 from .. import noise
 from ..initialise import initialise
 from ..turns import realias
-from ..log import Log, wrap
+from ..log import Log
 from ..model import Model
 from ..solve import least_squares
 from ..solve import marginals as gaussian_marginals
@@ -58,21 +58,7 @@ def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0,
 
 def fill_in(log: Log, model: Model, lay: G.Layout, knot_poses: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses: each coarse segment dead-reckoned step by step, its closure error spread linearly."""
-    T = log.steps
-    v = model.velocity_of(log.action) * log.dt[:, None]
-    out = np.empty((T + 1, 3))
-    for i in range(lay.n_poses - 1):
-        a, b = int(lay.knots[i]), int(lay.knots[i + 1])
-        th = knot_poses[i, 2] + np.concatenate([[0.0], np.cumsum(v[a:b, 2])])
-        c, s = np.cos(th[:-1]), np.sin(th[:-1])
-        x = knot_poses[i, 0] + np.concatenate([[0.0], np.cumsum(c * v[a:b, 0] - s * v[a:b, 1])])
-        y = knot_poses[i, 1] + np.concatenate([[0.0], np.cumsum(s * v[a:b, 0] + c * v[a:b, 1])])
-        err = np.array([knot_poses[i + 1, 0] - x[-1], knot_poses[i + 1, 1] - y[-1],
-                        wrap(knot_poses[i + 1, 2] - th[-1])])
-        frac = np.linspace(0.0, 1.0, b - a + 1)[:, None]
-        out[a:b + 1] = np.column_stack([x, y, th]) + frac * err
-    out[:, 2] = wrap(out[:, 2])
-    return out
+    return G.fill_between(lay.knots, knot_poses, model.velocity_of(log.action) * log.dt[:, None])
 
 
 def log_likelihood(cost: float, lay: G.Layout, log: Log, model: Model) -> float:
