@@ -340,10 +340,7 @@ class EffectProblem:
         else:
             d, dth = delta
             dth = dth if len(dth) else None
-        th = st.poses[:, 2]
-        c, s = np.cos(th), np.sin(th)
-        poses = np.column_stack([st.poses[:, 0] + c * d[:, 0] - s * d[:, 1],
-                                 st.poses[:, 1] + s * d[:, 0] + c * d[:, 1], wrap(th + d[:, 2])])
+        poses = G.retract_poses(st.poses, d)
         if dth is None:
             return AState(poses, st.velocities, st.poly, st.theta)
         x = self.pack(st) + dth

@@ -165,12 +165,7 @@ class Problem:
         return g
 
     def retract(self, st: State, delta: gtsam.VectorValues) -> State:
-        K = self.lay.n_poses
-        d = np.array([delta.at(X(i)) for i in range(K)])
-        th = st.poses[:, 2]
-        c, s = np.cos(th), np.sin(th)
-        poses = np.column_stack([st.poses[:, 0] + c * d[:, 0] - s * d[:, 1],
-                                 st.poses[:, 1] + s * d[:, 0] + c * d[:, 1], wrap(th + d[:, 2])])
+        poses = G.retract_poses(st.poses, delta)
         if not delta.exists(C(0)):
             return State(poses, st.params, st.poly)
         return State(poses, st.params + np.asarray(delta.at(M(0))), st.poly + np.asarray(delta.at(C(0))))

@@ -175,12 +175,7 @@ class Problem:
 
     def retract(self, st: State, delta: gtsam.VectorValues) -> State:
         """Apply a tangent step: poses move in their own body frame (Pose2 expmap to first order)."""
-        K = self.lay.n_poses
-        d = np.array([delta.at(X(i)) for i in range(K)])
-        th = st.poses[:, 2]
-        c, s = np.cos(th), np.sin(th)
-        poses = np.column_stack([st.poses[:, 0] + c * d[:, 0] - s * d[:, 1],
-                                 st.poses[:, 1] + s * d[:, 0] + c * d[:, 1], wrap(th + d[:, 2])])
+        poses = retract_poses(st.poses, delta)
         if not delta.exists(C(0)):
             return State(poses, st.velocities, st.poly)
         vel = st.velocities + np.array([delta.at(V(a)) for a in range(self.lay.n_actions)])
@@ -289,6 +284,16 @@ def fill_between(knots: np.ndarray, knot_poses: np.ndarray, steps: np.ndarray) -
         out[a:b + 1] = seg + np.linspace(0.0, 1.0, b - a + 1)[:, None] * err
     out[:, 2] = wrap(out[:, 2])
     return out
+
+
+def retract_poses(poses: np.ndarray, delta) -> np.ndarray:
+    """Poses moved by their tangent steps (``X(i)`` of a VectorValues, or an (n, 3) array) in their own
+    body frame (Pose2 expmap to first order)."""
+    d = np.array([delta.at(X(i)) for i in range(len(poses))]) if isinstance(delta, gtsam.VectorValues) else delta
+    th = poses[:, 2]
+    c, s = np.cos(th), np.sin(th)
+    return np.column_stack([poses[:, 0] + c * d[:, 0] - s * d[:, 1], poses[:, 1] + s * d[:, 0] + c * d[:, 1],
+                            wrap(th + d[:, 2])])
 
 
 def add_sightings(g: gtsam.GaussianFactorGraph, knot, Jp, Jc, e, poses_only: bool) -> None:
