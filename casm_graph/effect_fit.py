@@ -38,11 +38,13 @@ def describe(effects: list[Effect], problem: EffectProblem, theta: np.ndarray) -
 
 def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | None = None,
         rounds: int = ROUNDS, iterations: int = ITERATIONS, obs_mask: np.ndarray | None = None,
-        seed: int = 0, fit_parameters: bool = True, on_iteration=None, rel_tol: float = 1e-6) -> EffectFit:
+        seed: int = 0, fit_parameters: bool = True, on_iteration=None, rel_tol: float = 1e-6,
+        fit_noise: bool = True) -> EffectFit:
     """Least squares with ``effects`` from ``model`` and ``poses`` (T+1, 3); noise re-estimated each round.
 
     ``fit_parameters=False`` keeps table, polynomial, effects and noise where they are and only
-    moves the poses (how a given model is assessed on a log).
+    moves the poses (how a given model is assessed on a log); ``fit_noise=False`` keeps only the
+    noise levels (and noise-only effect parameters) where they are.
     """
     effects = instantiate(effects, log)
     th = theta_from_model(effects, model) if theta is None else np.asarray(theta, float)
@@ -59,7 +61,7 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
         its += h.iterations
         cost.extend(h.cost)
         model = model.with_(velocities=st.velocities, reading_poly=st.poly)
-        if fit_parameters:
+        if fit_parameters and fit_noise:
             model, theta_new = estimate_noise(problem, st, model, seed=seed + r)
             st = AState(st.poses, st.velocities, st.poly, theta_new)
     problem = EffectProblem(log, model, effects, st.theta, obs_mask)

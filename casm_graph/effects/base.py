@@ -90,6 +90,12 @@ class Effect:
         return obs
 
 
+def held(cls: type[Effect]) -> type[Effect]:
+    """``cls`` with its parameters held where they are: least squares and the noise step leave them alone."""
+    return type(cls.__name__, (cls,), {"noise_only": True, "estimate_noise": Effect.estimate_noise,
+                                      "__doc__": f"{cls.__name__} with its parameters held fixed."})
+
+
 def register(cls: type[Effect]) -> type[Effect]:
     """Class decorator adding an effect to the registry under its ``name``."""
     if not cls.name:
