@@ -100,3 +100,21 @@ def test_own_solver_equals_gtsam_on_the_effect_graph(short):
     ref = np.array([dv.at(gtsam.symbol_shorthand.X(i)) for i in range(p.lay.n_poses)])
     np.testing.assert_allclose(dp, ref, atol=1e-8)
     np.testing.assert_allclose(dt, dv.at(AU.THETA), atol=1e-8)
+
+
+def test_held_effect_keeps_its_parameters_while_the_rest_is_fitted(short):
+    """What the held-out score relies on: a held effect and the noise stay put, table and poses move."""
+    from casm_graph import effect_fit
+    from casm_graph.effects.base import held
+    log, m = short
+    lag = REGISTRY["actuator_lag"]
+    m = m.with_(effects={"actuator_lag": {"tau": 0.2}})
+    poses = log.truth[:, 1:] + 0.01
+    free = effect_fit.fit(log, m, poses, [lag], rounds=1, iterations=3, fit_noise=False)
+    fixed = effect_fit.fit(log, m, poses, [held(lag)], rounds=1, iterations=3, fit_noise=False)
+    assert held(lag).name == "actuator_lag" and not lag.noise_only
+    assert free.model.effects["actuator_lag"]["tau"] != pytest.approx(0.2, abs=1e-6)
+    assert fixed.model.effects["actuator_lag"]["tau"] == pytest.approx(0.2, abs=1e-12)
+    assert fixed.model.reading_sigma == m.reading_sigma and np.all(fixed.model.motion_noise == m.motion_noise)
+    assert np.abs(fixed.model.velocities - m.velocities).max() > 1e-6
+    assert np.abs(fixed.poses - poses).max() > 1e-3
