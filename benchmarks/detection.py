@@ -36,8 +36,18 @@ def main():
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--out", default="detection.jsonl")
     ap.add_argument("--no-after", action="store_true", help="skip the add-and-rediagnose step")
+    ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     done = defaultdict(list)
+    if args.table:
+        for path in args.table:
+            with open(path) as f:
+                for line in f:
+                    if line.strip():
+                        row = json.loads(line)
+                        done[(row["effect"] or "none", row["value"])].append(row)
+        print_table(done)
+        return
     with open(args.out, "a") as f:
         for name, values in parse(args.effects).items():
             for v in values:
@@ -53,9 +63,14 @@ def main():
                           f"held-out gain {tr.heldout_gain}, score {tr.error_before['score']:.2f} -> "
                           f"{tr.error_after['score'] if tr.error_after else float('nan'):.2f}, {tr.seconds:.0f} s",
                           flush=True)
+    print_table(done)
+
+
+def print_table(done: dict) -> None:
+    """Detection rate, fix rate, held-out gain and model error per (effect, strength)."""
     print("\n| effect | strength | detected | none after adding it | held-out gain (nats, median) | "
-          "model error before -> after (paper units, median) |")
-    print("|---|---|---|---|---|---|")
+          "model error before -> after (paper units, median) | verdict per seed |")
+    print("|---|---|---|---|---|---|---|")
     for (name, v), rows in done.items():
         want = "none" if name == "none" else name
         hit = sum(r["verdict"] == want for r in rows)
@@ -65,8 +80,9 @@ def main():
         before = sorted(r["error_before"]["score"] for r in rows)
         aft = sorted(r["error_after"]["score"] for r in after)
         med = (lambda x: f"{x[len(x) // 2]:.2f}" if x else "-")
+        seeds = ", ".join(f"{r['seed']}: {r['verdict']}" for r in sorted(rows, key=lambda r: r["seed"]))
         print(f"| {name} | {v:g} | {hit}/{len(rows)} | {fixed}/{len(after)} | {med(gains)} | "
-              f"{med(before)} -> {med(aft)} |")
+              f"{med(before)} -> {med(aft)} | {seeds} |")
 
 
 if __name__ == "__main__":
