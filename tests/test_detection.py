@@ -5,7 +5,8 @@ base model, diagnoses it, adds the verdict with ``calibrate --effect`` and diagn
 (:mod:`casm_graph.hidden_effect`). Reduced size (CI): actuator lag, one seed, six minutes, the
 diagnosis choosing between the lag and its closest look-alike (camera latency); its second
 diagnosis, after the lag is added, is the no-missing-effect case. Held-out folds need about two
-minutes of log each: on three-minute logs the lag's held-out gain is negative (BENCHMARKS.md). ``CASM_FULL=1``: all eight effects and none, three seeds, six
+minutes of log each (with the first held-out score the lag's gain was negative on three-minute
+logs, BENCHMARKS.md). ``CASM_FULL=1``: all eight effects and none, three seeds, six
 minutes; benchmarks/detection.py prints the same as a table (BENCHMARKS.md).
 """
 import pytest
