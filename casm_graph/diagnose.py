@@ -209,16 +209,16 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
     block without sightings can stop in another basin).
     """
     total = 0.0
-    fixed = [held(REGISTRY[e] if isinstance(e, str) else e if isinstance(e, type) else type(e)) for e in effects]
+    fixed = [held(_resolve(e)) for e in effects]
     for mask in folds(log):
         tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS,
                             rel_tol=FOLD_TOL)
-        terms = []
-        for m in (None, mask):
-            terms.append(max((effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1,
-                                             iterations=FOLD_ITERATIONS, obs_mask=m, fit_noise=False,
-                                             rel_tol=FOLD_TOL).log_likelihood for start in (tr.poses, poses))))
-        total += terms[0] - terms[1]
+        with_block, without = (
+            max(effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=FOLD_ITERATIONS,
+                               obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
+                for start in (tr.poses, poses))
+            for m in (None, mask))
+        total += with_block - without
     return total
 
 

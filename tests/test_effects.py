@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from casm_graph import augmented as AU
+from casm_graph import effect_fit
 from casm_graph.effects import REGISTRY, catalog
+from casm_graph.effects.base import held
 from casm_graph.model import paper_start
 from casm_graph.simulate import SimConfig, simulate
 from casm_graph.solve import _damping
@@ -104,8 +106,6 @@ def test_own_solver_equals_gtsam_on_the_effect_graph(short):
 
 def test_held_effect_keeps_its_parameters_while_the_rest_is_fitted(short):
     """What the held-out score relies on: a held effect and the noise stay put, table and poses move."""
-    from casm_graph import effect_fit
-    from casm_graph.effects.base import held
     log, m = short
     lag = REGISTRY["actuator_lag"]
     m = m.with_(effects={"actuator_lag": {"tau": 0.2}})

@@ -16,8 +16,8 @@ from casm_graph import ekfs
 from casm_graph import graph as G
 from casm_graph import uncertainty as U
 from casm_graph.augmented import EffectProblem
-from casm_graph.log import LogError
 from casm_graph.cli import main
+from casm_graph.log import LogError
 from casm_graph.methods import METHODS
 from casm_graph.methods.ekfs_em import _observations
 from casm_graph.model import Model, paper_start
