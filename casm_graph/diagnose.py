@@ -204,9 +204,10 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
     without, and the block's term is the difference of the two log-likelihoods. The table and
     polynomial are the nuisance here: on a six-minute log many actions run only inside one block,
     and a table learned without it predicts that block so badly (hundreds of nats either way) that
-    the comparison of two models drowned in it. The pose fits start from the training poses and
-    from the model's own full-log poses and keep the better (the drifted poses of a two-minute
-    block without sightings can stop in another basin).
+    the comparison of two models drowned in it. The fit with the block starts from the training
+    poses and from the model's own full-log poses and keeps the better (the drifted poses of a
+    two-minute block without sightings can stop in another basin); the fit without it is the
+    training problem with effects and noise held, so the training poses are already its optimum.
     """
     total = 0.0
     fixed = [held(_resolve(e)) for e in effects]
@@ -216,8 +217,8 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
         with_block, without = (
             max(effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=FOLD_ITERATIONS,
                                obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
-                for start in (tr.poses, poses))
-            for m in (None, mask))
+                for start in starts)
+            for m, starts in ((None, (tr.poses, poses)), (mask, (tr.poses,))))
         total += with_block - without
     return total
 
