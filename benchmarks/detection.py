@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import tempfile
 from collections import defaultdict
 
@@ -69,8 +70,9 @@ def main():
 def print_table(done: dict) -> None:
     """Detection rate, fix rate, held-out gain and model error per (effect, strength)."""
     print("\n| effect | strength | detected | none after adding it | held-out gain (nats, median) | "
-          "model error before -> after (paper units, median) | verdict per seed |")
-    print("|---|---|---|---|---|---|---|")
+          "table+curve error before -> after (paper units, median) | parameter error with the effect's own, "
+          "before -> after (median; falls on) | verdict per seed |")
+    print("|---|---|---|---|---|---|---|---|")
     for (name, v), rows in done.items():
         want = "none" if name == "none" else name
         hit = sum(r["verdict"] == want for r in rows)
@@ -79,10 +81,21 @@ def print_table(done: dict) -> None:
         gains = sorted(r["heldout_gain"] for r in rows if r["heldout_gain"] is not None)
         before = sorted(r["error_before"]["score"] for r in rows)
         aft = sorted(r["error_after"]["score"] for r in after)
+        tb = {id(r): total(r["error_before"], {}, r["truth"]) for r in rows}
+        ta = {id(r): total(r["error_after"], r["fitted"], r["truth"]) for r in after}
+        falls = sum(ta[id(r)] < tb[id(r)] for r in after)
         med = (lambda x: f"{x[len(x) // 2]:.2f}" if x else "-")
         seeds = ", ".join(f"{r['seed']}: {r['verdict']}" for r in sorted(rows, key=lambda r: r["seed"]))
         print(f"| {name} | {v:g} | {hit}/{len(rows)} | {fixed}/{len(after)} | {med(gains)} | "
-              f"{med(before)} -> {med(aft)} | {seeds} |")
+              f"{med(before)} -> {med(aft)} | {med(sorted(tb.values()))} -> {med(sorted(ta.values()))} "
+              f"({falls}/{len(after)}) | {seeds} |")
+
+
+def total(err: dict, fitted: dict, truth: dict) -> float:
+    """``model_error``'s total; rows written before it existed get it from their score and effects."""
+    if "total" in err:
+        return err["total"]
+    return float(math.hypot(err["score"], hidden_effect.effect_error(fitted or {}, truth or {})))
 
 
 if __name__ == "__main__":

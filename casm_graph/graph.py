@@ -19,7 +19,7 @@ import factors
 from .log import Log, nearest_index, wrap
 from .model import Model
 
-VELOCITY_PRIOR_SIGMA = 10.0      # weak priors keep never-run actions and the polynomial well posed
+VELOCITY_PRIOR_SIGMA = 1.0       # m/s, rad/s: keeps never-run actions posed and a wrong basin from running off (BENCHMARKS.md)
 POLY_PRIOR_SIGMA = 1e4
 
 

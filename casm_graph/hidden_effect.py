@@ -21,13 +21,29 @@ PAPER_SIM_RMS = np.array([0.02306, 0.01834, 0.086])   # EKFS-EM's simulated erro
 
 
 def model_error(model: Model, truth: dict) -> dict:
-    """Velocity-table RMS per component and sensor-curve RMS (px) against a simulated log's truth."""
+    """Error of a fitted model against a simulated log's truth.
+
+    ``score``: velocity-table RMS per component and sensor-curve RMS (px), in units of the paper's
+    simulated errors. ``effect``: the hidden effects' parameters, norm of (fitted - true) over norm
+    of true; every catalog effect is neutral at zero, so a model without the effect scores 1.
+    ``total`` combines the two (root sum of squares): the whole parameter vector against the truth.
+    """
     tv = np.array([truth["action_model"]["velocities"][str(a)] for a in model.action_ids])
     rms = np.sqrt(np.mean((model.velocities - tv) ** 2, axis=0))
     d = np.linspace(*truth["sensor_model"]["distance_range"], 200)
     curve = float(np.sqrt(np.mean((model.reading(d) - true_reading(truth, d)) ** 2)))
-    return {"vx": float(rms[0]), "vy": float(rms[1]), "w": float(rms[2]), "curve": curve,
-            "score": float(np.sqrt(np.mean((rms / PAPER_SIM_RMS) ** 2) + (curve / 0.35) ** 2))}
+    score = float(np.sqrt(np.mean((rms / PAPER_SIM_RMS) ** 2) + (curve / 0.35) ** 2))
+    effect = effect_error(model.effects or {}, truth.get("effects", {}))
+    return {"vx": float(rms[0]), "vy": float(rms[1]), "w": float(rms[2]), "curve": curve, "score": score,
+            "effect": effect, "total": float(np.hypot(score, effect))}
+
+
+def effect_error(fitted: dict, true: dict) -> float:
+    """Relative error of the true effects' parameters (0 when no effect is hidden; 1 when none is fitted)."""
+    p = np.array([v for name in true for v in true[name].values()], float)
+    q = np.array([fitted.get(name, {}).get(k, 0.0) for name in true for k in true[name]], float)
+    n = np.linalg.norm(p)
+    return float(np.linalg.norm(q - p) / n) if n > 0 else 0.0
 
 
 @dataclass

@@ -6,8 +6,10 @@
    noise level is re-estimated from its residuals with the degrees-of-freedom correction of
    :mod:`casm_graph.noise`, so the motion noise starts at the paper's loose value and tightens as
    the fit earns it.
-3. The coarse trajectory is filled in step by step and the full graph (a pose every step, as in
-   the paper) is optimised, its noise levels re-estimated once more, and GTSAM marginals give the
+3. Sightings the coarse fit cannot explain by any Gaussian noise are pruned
+   (:mod:`casm_graph.outliers`, as the paper prunes in its first EM iteration); the coarse
+   trajectory is filled in step by step and the full graph (a pose every step, as in the paper)
+   is optimised, its noise levels re-estimated once more, and GTSAM marginals give the
    posterior std of every pose, velocity and coefficient.
 """
 from __future__ import annotations
@@ -23,6 +25,7 @@ from gtsam.symbol_shorthand import C, V, X
 from .. import graph as G
 from .. import noise
 from ..initialise import initialise
+from ..outliers import outlying, prune
 from ..turns import realias
 from ..log import Log
 from ..model import Model
@@ -140,6 +143,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     co = coarse_start(log, start, seed, progress)
     model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
     realiased, init = co.realiased, co.init
+    pruned = outlying(log, model, poses)
+    log = prune(log, pruned)
 
     full = G.layout(log, model, stride=1)
     progress.stage("full graph", FULL_ROUNDS)
@@ -177,8 +182,10 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": "graph", "iterations": iterations,
                              "seconds": round(time.perf_counter() - t0, 3),
-                             "log_likelihood": ll, "converged": bool(converged)})
+                             "log_likelihood": ll, "converged": bool(converged),
+                             "outliers_pruned": int(pruned.sum())})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
-                      "realiased_actions": realiased, "marginals_ridge": ridge})
+                      "realiased_actions": realiased, "marginals_ridge": ridge,
+                      "outliers_pruned": np.flatnonzero(pruned).tolist()})
