@@ -4,6 +4,8 @@ The false-detection log (5 % of sightings random, six minutes, seed 1) is the on
 graph calibration fell into a wrong minimum before pruning: sensor curve 94 px RMS off, model
 error 269 in the paper's units (BENCHMARKS.md).
 """
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -22,7 +24,6 @@ def test_outlying_flags_planted_sightings_and_prune_keeps_indices(short_bundle):
     bad = rng.choice(np.flatnonzero(np.isfinite(log.obs_reading)), 10, replace=False)
     planted = log.obs_reading.copy()
     planted[bad] += rng.choice([-1, 1], 10) * rng.uniform(8, 20, 10)     # 8-20 sigma off
-    from dataclasses import replace
     dirty = replace(log, obs_reading=planted)
     mask = outlying(dirty, fit.model, fit.poses)
     assert set(bad) <= set(np.flatnonzero(mask))
