@@ -2,6 +2,7 @@
 
     python benchmarks/accuracy.py --minutes 15 --seeds 0 1 2 3 4
     python benchmarks/accuracy.py --minutes 6 --seeds $(seq 0 19)
+    python benchmarks/accuracy.py --minutes 15 --seeds 0 1 2 3 4 --method ekfs-em
 """
 from __future__ import annotations
 
@@ -19,14 +20,17 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--minutes", type=float, default=15)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    ap.add_argument("--method", choices=sorted(METHODS), default="graph")
     args = ap.parse_args()
-    print("| seed | vx RMS mm/s | vy RMS mm/s | w RMS rad/s | curve RMS px | reading sigma | bearing sigma | seconds |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| seed | vx RMS mm/s | vy RMS mm/s | w RMS rad/s | curve RMS px | reading sigma | bearing sigma | "
+          "iterations | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|")
     ws = []
+    extra = {"marginals": False} if args.method == "graph" else {}
     for seed in args.seeds:
         log, truth = simulate(SimConfig(minutes=args.minutes, seed=seed))
         t = time.perf_counter()
-        fit = METHODS["graph"](log, paper_start(log), seed=seed, marginals=False)
+        fit = METHODS[args.method](log, paper_start(log), seed=seed, **extra)
         sec = time.perf_counter() - t
         tv = np.array([truth["action_model"]["velocities"][str(a)] for a in fit.model.action_ids])
         rms = np.sqrt(np.mean((fit.model.velocities - tv) ** 2, axis=0))
@@ -34,7 +38,8 @@ def main():
         curve = np.sqrt(np.mean((fit.model.reading(d) - true_reading(truth, d)) ** 2))
         ws.append(rms[2])
         print(f"| {seed} | {1000 * rms[0]:.1f} | {1000 * rms[1]:.1f} | {rms[2]:.4f} | {curve:.3f} | "
-              f"{fit.model.reading_sigma:.3f} | {fit.model.bearing_sigma:.3f} | {sec:.1f} |", flush=True)
+              f"{fit.model.reading_sigma:.3f} | {fit.model.bearing_sigma:.3f} | {fit.model.fit.get('iterations', '-')} | "
+              f"{sec:.1f} |", flush=True)
     ok = sum(w < 0.1 for w in ws)
     print(f"\nglobal optimum (w RMS < 0.1 rad/s) on {ok} of {len(ws)} seeds")
 

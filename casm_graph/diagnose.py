@@ -49,6 +49,7 @@ FOLDS = 3
 # The evidence a verdict needs (calibrated on effect-free simulated logs, see BENCHMARKS.md):
 BIC_SUPPORT = -10.0          # delta BIC at most this (strong evidence on Kass and Raftery's scale)
 HELDOUT_SUPPORT = 0.0        # and the held-out log-likelihood must improve
+BIC_TIE = 2.0                # delta BICs closer than this are no evidence either way: the held-out score decides
 STRUCTURE_P = 1e-6           # residual structure counts when this significant ...
 STRUCTURE_OMEGA2 = 0.01      # ... and it explains at least 1 % of the residual variance
 CANDIDATE_ROUNDS, CANDIDATE_ITERATIONS = 2, 8
@@ -285,7 +286,10 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
 
     A candidate is supported when BIC supports it strongly and a second, independent line agrees:
     the held-out log-likelihood improves, or the candidate is the effect built for the strongest
-    residual structure (its ``explains`` holds that channel and covariate).
+    residual structure (its ``explains`` holds that channel and covariate). Among supported
+    candidates whose delta BIC is within ``BIC_TIE`` of the lowest (no evidence either way on
+    Kass and Raftery's scale; look-alikes such as a weak actuator lag and camera latency) the
+    held-out score decides.
     """
     words = []
     explains = explains or {}
@@ -296,7 +300,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
 
     supported = [c for c in cands if c.delta_bic <= BIC_SUPPORT and (c.heldout_nll_drop > HELDOUT_SUPPORT or matches(c))]
     if supported:
-        best = supported[0]
+        lead = min(c.delta_bic for c in supported)
+        tied = [c for c in supported if c.delta_bic - lead < BIC_TIE]
+        best = max(tied, key=lambda c: -np.inf if np.isnan(c.heldout_nll_drop) else c.heldout_nll_drop)
         if best.heldout_nll_drop > HELDOUT_SUPPORT:
             second = f"improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats"
         else:
@@ -304,9 +310,15 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                       f"though the held-out score does not improve ({best.heldout_nll_drop:.1f} nats)")
         words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
                      f"and {second}. {best.explanation}")
-        if len(supported) > 1:
+        if len(tied) > 1:
+            words.append("BIC cannot tell " + " and ".join(c.effect for c in tied) + " apart (delta BIC "
+                         + ", ".join(f"{c.delta_bic:.1f}" for c in tied) + f": closer than {BIC_TIE:g}); the "
+                         "held-out log-likelihood prefers " + best.effect + " (" + ", ".join(
+                             f"{c.heldout_nll_drop:.1f}" for c in tied) + " nats).")
+        rest = [c for c in supported if c is not best]
+        if rest:
             words.append("Also supported, less strongly: " + ", ".join(
-                f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in supported[1:]) + ".")
+                f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in rest) + ".")
         return best.effect, words
     if structure:
         s = structure[0]

@@ -94,6 +94,11 @@ def test_verdict_rule():
     assert D.verdict([cand("lens_distortion", -563, -27.7)], [strong], explains)[0] == "unexplained:heading"
     assert D.verdict([cand("lens_distortion", -5, -27.7)], [lens], explains)[0] == "unexplained:image_angle"
     assert D.verdict([cand("actuator_lag", -50, -1)], [lens, strong], explains)[0] == "unexplained:image_angle"
+    # look-alikes within 2 of each other in BIC (lag 0.15 s, seed 0, BENCHMARKS.md): the held-out score decides
+    tie = [cand("camera_latency", -169.95, 98.01), cand("actuator_lag", -168.91, 98.68), cand("lens_distortion", -20, 5)]
+    v, words = D.verdict(tie, [strong])
+    assert v == "actuator_lag" and "cannot tell camera_latency and actuator_lag apart" in " ".join(words)
+    assert D.verdict([cand("camera_latency", -172, 98.01), cand("actuator_lag", -168.91, 98.68)], [strong])[0] == "camera_latency"
 
 
 def test_effects_command_lists_the_catalog():
