@@ -2,7 +2,7 @@
 
     python benchmarks/accuracy.py --minutes 15 --seeds 0 1 2 3 4
     python benchmarks/accuracy.py --minutes 6 --seeds $(seq 0 19)
-    python benchmarks/accuracy.py --minutes 15 --seeds 0 1 2 3 4 --method ekfs-em
+    python benchmarks/accuracy.py --minutes 15 --seeds 0 1 2 3 4 --method ekfs-em [--outlier-m2 27.6]
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from casm_graph.methods import METHODS
+from casm_graph.methods import METHODS, ekfs_em
 from casm_graph.model import paper_start
 from casm_graph.simulate import SimConfig, simulate, true_reading
 
@@ -21,10 +21,14 @@ def main():
     ap.add_argument("--minutes", type=float, default=15)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--method", choices=sorted(METHODS), default="graph")
+    ap.add_argument("--outlier-m2", type=float, help="ekfs-em: first-iteration pruning threshold "
+                    f"(squared Mahalanobis innovation; default {ekfs_em.OUTLIER_M2})")
     args = ap.parse_args()
     print("| seed | vx RMS mm/s | vy RMS mm/s | w RMS rad/s | curve RMS px | reading sigma | bearing sigma | "
           "iterations | seconds |")
     print("|---|---|---|---|---|---|---|---|---|")
+    if args.outlier_m2:
+        ekfs_em.OUTLIER_M2 = args.outlier_m2
     ws = []
     extra = {"marginals": False} if args.method == "graph" else {}
     for seed in args.seeds:

@@ -196,7 +196,8 @@ def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
     return [block != f for f in range(k)]
 
 
-def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list) -> float:
+def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
+                           detail: list | None = None) -> float:
     """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
     a block say about it.
 
@@ -209,6 +210,7 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
     poses and from the model's own full-log poses and keeps the better (the drifted poses of a
     two-minute block without sightings can stop in another basin); the fit without it is the
     training problem with effects and noise held, so the training poses are already its optimum.
+    ``detail`` (a list) receives per fold the with-block log-likelihood from each start and the one without.
     """
     total = 0.0
     fixed = [held(_resolve(e)) for e in effects]
@@ -216,11 +218,14 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
         tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS,
                             rel_tol=FOLD_TOL)
         with_block, without = (
-            max(effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=FOLD_ITERATIONS,
-                               obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
-                for start in starts)
+            [effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=FOLD_ITERATIONS,
+                            obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
+             for start in starts]
             for m, starts in ((None, (tr.poses, poses)), (mask, (tr.poses,))))
-        total += with_block - without
+        if detail is not None:
+            detail.append({"with_block_from_training_poses": with_block[0],
+                           "with_block_from_full_log_poses": with_block[1], "without_block": without[0]})
+        total += max(with_block) - without[0]
     return total
 
 
