@@ -38,7 +38,7 @@ from .model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_RE
 from .solve import least_squares
 from .solve import marginals as gaussian_marginals
 
-PARAM_PRIOR_SIGMA = 10.0
+PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the command scale
 POLY_PRIOR_SIGMA = 1e4
 GATE = 5.0                   # whitened residual beyond which a sighting is set aside (re-decided each round)
 HUBER = 2.0                  # sightings count quadratically up to this many sigmas, linearly beyond
@@ -120,6 +120,9 @@ class Problem:
         self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
+        nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
+        self.p_mean = nominal.params
+        self.p_sigma = PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
 
     def rows(self, st: State):
         P = st.poses
@@ -134,7 +137,7 @@ class Problem:
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
         w = huber(be)
         be, bJ = be * w, bJ * w[:, None]
-        pe = np.concatenate([st.params / PARAM_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
+        pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
         return ae, aJ, re, rJ, be, bJ, pe
 
     def cost(self, st: State) -> float:
@@ -160,7 +163,7 @@ class Problem:
         if poses_only:
             return g
         Pn = self.n_params
-        g.add(M(0), np.eye(Pn) / PARAM_PRIOR_SIGMA, -pe[:Pn], gtsam.noiseModel.Unit.Create(Pn))
+        g.add(M(0), np.diag(1 / self.p_sigma), -pe[:Pn], gtsam.noiseModel.Unit.Create(Pn))
         g.add(C(0), np.eye(D) / POLY_PRIOR_SIGMA, -pe[Pn:], gtsam.noiseModel.Unit.Create(D))
         return g
 
@@ -196,7 +199,7 @@ class Problem:
         if not poses_only:
             block(3 * seg, Hp, np.full(K - 1, 3 * K))
             block(n_act + np.arange(n_r), rJ[1][:, None, :], np.full(n_r, 3 * K + Pn))
-            prior = np.concatenate([np.full(Pn, 1 / PARAM_PRIOR_SIGMA), np.full(D, 1 / POLY_PRIOR_SIGMA)])
+            prior = np.concatenate([1 / self.p_sigma, np.full(D, 1 / POLY_PRIOR_SIGMA)])
             rows.append(n_rows + np.arange(Pn + D))
             cols.append(3 * K + np.arange(Pn + D))
             vals.append(prior)
