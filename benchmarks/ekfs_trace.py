@@ -23,14 +23,6 @@ def main():
     a = ap.parse_args()
     log, truth = simulate(SimConfig(minutes=a.minutes, seed=a.seed))
     start = paper_start(log)
-    tables = []
-    record = ekfs_em.velocity_errors
-
-    def keep(model, tr):
-        tables.append(model.velocities.copy())
-        return record(model, tr)
-
-    ekfs_em.velocity_errors = keep
     fit = ekfs_em.fit(log, start, seed=a.seed, truth=truth, max_iterations=a.iterations, patience=a.iterations)
     h = fit.notes["history"]
     print(f"pruned {fit.model.fit['outliers_pruned']} of {int(np.isfinite(log.obs_reading).sum())} sightings; "
@@ -38,7 +30,7 @@ def main():
     for i, (ll, e) in enumerate(zip(h["log_likelihood"], h["velocity_rms"])):
         if i < 30 or i % 10 == 0:
             print(f"{i:4d}  log-likelihood {ll:10.1f}  vx {1000 * e[0]:6.1f} vy {1000 * e[1]:6.1f} mm/s  w {e[2]:.4f} rad/s")
-    V = np.array(tables)
+    V = np.array(h["velocities"])
     tv = np.array([truth["action_model"]["velocities"][str(a)] for a in start.action_ids])
     for k in np.argsort(-np.abs(V[-1, :, 2] - tv[:, 2]))[:4]:
         print(f"action {start.action_ids[k]}: true w {tv[k, 2]:.3f}; last six iterations "

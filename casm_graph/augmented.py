@@ -421,16 +421,22 @@ class EffectProblem:
         self.r_scale = t["scale"]
         self.weight = t["weight"]
 
-    def log_likelihood(self, st: AState) -> float:
-        """Laplace log p(O | model): data densities at the pose mode minus half log det of the pose information."""
+    def log_likelihood_terms(self, st: AState) -> dict:
+        """The Laplace log-likelihood's parts: motion and observation log densities at ``st``, the
+        Gaussian constant of the integrated poses and half the log det of their information."""
         r = self.rows(st)
         lm = -0.5 * np.sum(r.action_e ** 2) - np.sum(np.log(self.motion_sigma)) \
             - 0.5 * r.action_e.size * np.log(2 * np.pi)
         t = self.observation_terms(st)
-        lo = float(np.sum(t["log_density"][self.obs_mask]))
         D, B = chain.information_blocks(self, st)
         _, _, logdet = chain.select_inverse(D, B)
-        return float(lm + lo + 1.5 * self.lay.n_poses * np.log(2 * np.pi) - 0.5 * logdet)
+        return {"motion": float(lm), "observation": float(np.sum(t["log_density"][self.obs_mask])),
+                "pose_constant": 1.5 * self.lay.n_poses * np.log(2 * np.pi), "half_log_det": 0.5 * float(logdet)}
+
+    def log_likelihood(self, st: AState) -> float:
+        """Laplace log p(O | model): data densities at the pose mode minus half log det of the pose information."""
+        t = self.log_likelihood_terms(st)
+        return float(t["motion"] + t["observation"] + t["pose_constant"] - t["half_log_det"])
 
 
 def estimate_noise(problem: EffectProblem, st: AState, model: Model, seed: int = 0) -> tuple[Model, np.ndarray]:

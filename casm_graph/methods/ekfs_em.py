@@ -71,7 +71,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     use = np.ones(len(z_r), bool)
     deg = len(poly) - 1
     counts = np.bincount(act, minlength=len(vel))
-    history = {"log_likelihood": [], "velocity_rms": [], "seconds": []}
+    history = {"log_likelihood": [], "velocity_rms": [], "velocities": [], "seconds": []}
     best = None
     progress.stage("ekfs-em", max_iterations)
     for it in range(max_iterations):
@@ -84,6 +84,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         history["log_likelihood"].append(float(ll))
         err = velocity_errors(model, truth)
         history["velocity_rms"].append(None if err is None else err.tolist())
+        history["velocities"].append(model.velocities)
         history["seconds"].append(time.perf_counter() - t0)
         progress.step(1, cost=-ll)
         if best is None or ll > best[0]:
