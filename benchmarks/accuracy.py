@@ -29,7 +29,7 @@ def main():
     print("|---|---|---|---|---|---|---|---|---|")
     if args.outlier_m2:
         ekfs_em.OUTLIER_M2 = args.outlier_m2
-    ws = []
+    ws, pruned = [], []
     extra = {"marginals": False} if args.method == "graph" else {}
     for seed in args.seeds:
         log, truth = simulate(SimConfig(minutes=args.minutes, seed=seed))
@@ -41,11 +41,16 @@ def main():
         d = np.linspace(*fit.model.distance_range, 200)
         curve = np.sqrt(np.mean((fit.model.reading(d) - true_reading(truth, d)) ** 2))
         ws.append(rms[2])
+        if "best_iteration" in fit.model.fit:
+            pruned.append((fit.model.fit["outliers_pruned"], fit.model.fit["best_iteration"]))
         print(f"| {seed} | {1000 * rms[0]:.1f} | {1000 * rms[1]:.1f} | {rms[2]:.4f} | {curve:.3f} | "
               f"{fit.model.reading_sigma:.3f} | {fit.model.bearing_sigma:.3f} | {fit.model.fit.get('iterations', '-')} | "
               f"{sec:.1f} |", flush=True)
     ok = sum(w < 0.1 for w in ws)
     print(f"\nglobal optimum (w RMS < 0.1 rad/s) on {ok} of {len(ws)} seeds")
+    if pruned:
+        print("sightings pruned, best iteration per seed: " + ", ".join(
+            f"{s}: {n}, {b}" for s, (n, b) in zip(args.seeds, pruned)))
 
 
 if __name__ == "__main__":
