@@ -27,9 +27,10 @@ def main():
     h = fit.notes["history"]
     print(f"pruned {fit.model.fit['outliers_pruned']} of {int(np.isfinite(log.obs_reading).sum())} sightings; "
           f"best iteration {fit.model.fit['best_iteration']}")
-    for i, (ll, e) in enumerate(zip(h["log_likelihood"], h["velocity_rms"])):
+    for i, (ll, e, hd) in enumerate(zip(h["log_likelihood"], h["velocity_rms"], h["heading_rms"])):
         if i < 30 or i % 10 == 0:
-            print(f"{i:4d}  log-likelihood {ll:10.1f}  vx {1000 * e[0]:6.1f} vy {1000 * e[1]:6.1f} mm/s  w {e[2]:.4f} rad/s")
+            print(f"{i:4d}  log-likelihood {ll:10.1f}  vx {1000 * e[0]:6.1f} vy {1000 * e[1]:6.1f} mm/s  w {e[2]:.4f} rad/s"
+                  f"  forward-filter heading RMS {hd:.3f} rad")
     V = np.array(h["velocities"])
     tv = np.array([truth["action_model"]["velocities"][str(a)] for a in start.action_ids])
     for k in np.argsort(-np.abs(V[-1, :, 2] - tv[:, 2]))[:4]:

@@ -11,6 +11,19 @@ from casm_graph.simulate import SimConfig, simulate, write  # noqa: E402
 FULL = os.environ.get("CASM_FULL") == "1"
 
 
+def largest_early_drop(ll) -> tuple[float, float]:
+    """(largest fall, total gain) of a likelihood trace up to where it first reaches 95 % of its gain.
+
+    "Rises monotonically until approximation noise" (the EKFS-EM paper) means the first is small
+    next to the second.
+    """
+    import numpy as np
+    ll = np.asarray(ll, float)
+    gain = ll.max() - ll[0]
+    i95 = int(np.argmax(ll >= ll[0] + 0.95 * gain))
+    return float((-np.diff(ll[:i95 + 1])).max(initial=0.0)), float(gain)
+
+
 @pytest.fixture(scope="session")
 def short_bundle(tmp_path_factory):
     """A 2-minute simulated bundle on disk, with its truth."""

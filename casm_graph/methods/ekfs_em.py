@@ -29,7 +29,6 @@ OUTLIER_M2 = 13.8          # chi-square, 2 dof, 0.999: an innovation this unlike
 PATIENCE = 50
 MAX_ITERATIONS = 1500
 START_STD = (0.5, 0.5, 0.5)     # prior std of the first pose around the log-only initialiser's guess
-EPS_INFO = 1e-8
 
 
 def _observations(log: Log):
@@ -51,7 +50,8 @@ def velocity_errors(model: Model, truth: dict | None) -> np.ndarray | None:
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         max_iterations: int = MAX_ITERATIONS, patience: int = PATIENCE, truth: dict | None = None,
         start_pose: tuple | None = None) -> Fit:
-    """Calibrate ``log`` with EKFS-EM from the paper's start; ``truth`` only records errors per iteration."""
+    """Calibrate ``log`` with EKFS-EM from the paper's start; ``truth`` only records errors per iteration
+    (table RMS, and the forward filter's heading RMS when the log has a trajectory)."""
     progress = progress or Progress()
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
@@ -71,7 +71,9 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     use = np.ones(len(z_r), bool)
     deg = len(poly) - 1
     counts = np.bincount(act, minlength=len(vel))
-    history = {"log_likelihood": [], "velocity_rms": [], "velocities": [], "seconds": []}
+    history = {"log_likelihood": [], "velocity_rms": [], "velocities": [], "heading_rms": [], "seconds": []}
+    true_heading = (log.truth[:, 3] if truth is not None and log.truth is not None and len(log.truth) == log.steps + 1
+                    else None)
     best = None
     progress.stage("ekfs-em", max_iterations)
     for it in range(max_iterations):
@@ -85,6 +87,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         err = velocity_errors(model, truth)
         history["velocity_rms"].append(None if err is None else err.tolist())
         history["velocities"].append(model.velocities)
+        history["heading_rms"].append(None if true_heading is None else
+                                      float(np.sqrt(np.mean(wrap(mu_a[:, 2] - true_heading) ** 2))))
         history["seconds"].append(time.perf_counter() - t0)
         progress.step(1, cost=-ll)
         if best is None or ll > best[0]:
@@ -99,7 +103,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         mu_g, P_g = ekfs.smooth(mu_a, P_a, Lb, eb)
         if need_poses:
             best = (best[0], best[1], best[2], (mu_g, P_g))
-        d = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig, EPS_INFO)
+        d = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig)
         new = np.zeros_like(vel)
         np.add.at(new, act, d / dt[:, None])
         vel = np.where(counts[:, None] > 0, new / np.maximum(counts, 1)[:, None], vel)
