@@ -81,18 +81,23 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
     if not 1 <= sensor_degree <= 6:
         raise LogError(f"--sensor-degree must be between 1 and 6 (got {sensor_degree})")
     log = load(log_dir)
-    for cls in classes:
-        why = cls(log).applicable(log)
-        if why:
-            raise LogError(f"effect {cls.name!r} cannot be fitted on {log_dir}: {why}")
-    if log.controls is not None:            # continuous commands: the command-model graph
+    if log.controls is None:
+        for cls in classes:
+            why = cls(log).applicable(log)
+            if why:
+                raise LogError(f"effect {cls.name!r} cannot be fitted on {log_dir}: {why}")
+    else:                                   # continuous commands: the command-model graph
         from . import continuous, command_report
         if method != "graph":
             raise LogError(f"--method {method}: continuous commands (commands.csv 'v,w') are calibrated "
                            f"by the graph method only")
-        if classes:
-            raise LogError("--effect: effects are not available for continuous commands yet")
-        fit = continuous.fit(log, continuous.start_model(log, sensor_degree), seed=seed, progress=progress)
+        other = sorted({cls.name for cls in classes} - set(continuous.EFFECTS))
+        if other:
+            raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
+                           f"{', '.join(continuous.EFFECTS)} is available")
+        start = continuous.start_model(log, sensor_degree)
+        fitter = continuous.fit_with_lag if classes else continuous.fit
+        fit = fitter(log, start, seed=seed, progress=progress)
         if progress is not None:
             progress.stage("report", None)
         out = Path(out)

@@ -5,14 +5,36 @@ sideways motion. Each map is a short polynomial in the command divided by a fixe
 largest command magnitude in the log), so every coefficient is a velocity in m/s or rad/s and the
 whole model is one parameter vector ``[a_0..a_Dv, b_0..b_Dw]`` that is linear in the basis: the
 graph holds it as a single vector variable next to the poses and the sensor polynomial.
+
+With the ``actuator_lag`` effect the velocity follows ``f(command)`` through a first-order lag of
+time constant ``lag`` (s): v_k = a_k v_(k-1) + (1 - a_k) f(c_k), a_k = exp(-dt_k / lag). The lag
+acts on the basis, so the model stays linear in its coefficients; ``velocities(controls)``
+without step durations is the steady-state map.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numba import njit
 
 KIND = "command_poly"
+
+
+@njit(cache=True)
+def _first_order(x: np.ndarray, a: np.ndarray) -> np.ndarray:
+    y = np.empty_like(x)
+    y[0] = x[0]
+    for k in range(1, x.shape[0]):
+        y[k] = a[k] * y[k - 1] + (1.0 - a[k]) * x[k]
+    return y
+
+
+def lagged(x: np.ndarray, dt: np.ndarray, lag: float) -> np.ndarray:
+    """Rows of ``x`` (one per step) through a first-order lag of time constant ``lag``, from rest at x[0]."""
+    if lag <= 0:
+        return x
+    return _first_order(np.ascontiguousarray(x, dtype=float), np.exp(-np.asarray(dt, float) / lag))
 
 
 @dataclass(frozen=True)
@@ -25,6 +47,7 @@ class CommandModel:
     v_std: np.ndarray | None = None
     w_std: np.ndarray | None = None
     command_range: tuple = ((0.0, 0.0), (0.0, 0.0))
+    lag: float = 0.0                      # s, first-order lag between command and velocity (0: none)
 
     @property
     def params(self) -> np.ndarray:
@@ -41,14 +64,18 @@ class CommandModel:
             kw.update(v_std=np.asarray(std[:self.n_v], float), w_std=np.asarray(std[self.n_v:], float))
         return replace(self, **kw)
 
-    def basis(self, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(n, Dv+1) and (n, Dw+1) monomials of the scaled commands."""
+    def basis(self, controls: np.ndarray, dt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(n, Dv+1) and (n, Dw+1) monomials of the scaled commands; with the steps' ``dt``, through the lag."""
         u = np.asarray(controls, float) / np.asarray(self.scale)
-        return (u[:, 0:1] ** np.arange(self.n_v), u[:, 1:2] ** np.arange(len(self.w_coef)))
+        bv, bw = u[:, 0:1] ** np.arange(self.n_v), u[:, 1:2] ** np.arange(len(self.w_coef))
+        if dt is None or self.lag <= 0:
+            return bv, bw
+        both = lagged(np.hstack([bv, bw]), dt, self.lag)
+        return both[:, :self.n_v], both[:, self.n_v:]
 
-    def velocities(self, controls: np.ndarray) -> np.ndarray:
-        """(n, 3) body-frame (forward, lateral, turn) velocity for each command row."""
-        bv, bw = self.basis(controls)
+    def velocities(self, controls: np.ndarray, dt: np.ndarray | None = None) -> np.ndarray:
+        """(n, 3) body-frame (forward, lateral, turn) velocity for each command row (steady state without ``dt``)."""
+        bv, bw = self.basis(controls, dt)
         return np.column_stack([bv @ self.v_coef, np.zeros(len(bv)), bw @ self.w_coef])
 
     def to_json(self) -> dict:
@@ -59,7 +86,8 @@ class CommandModel:
                 "coefficients": {"v": lst(self.v_coef), "w": lst(self.w_coef)},
                 "std": {"v": lst(self.v_std), "w": lst(self.w_std)},
                 "command_range": {"v": [float(x) for x in self.command_range[0]],
-                                  "w": [float(x) for x in self.command_range[1]]}}
+                                  "w": [float(x) for x in self.command_range[1]]},
+                "lag": float(self.lag)}
 
     @classmethod
     def from_json(cls, am: dict) -> "CommandModel":
@@ -70,7 +98,8 @@ class CommandModel:
                    w_coef=np.array(am["coefficients"]["w"], float),
                    v_std=None if std.get("v") is None else np.array(std["v"], float),
                    w_std=None if std.get("w") is None else np.array(std["w"], float),
-                   command_range=(tuple(rng.get("v", (0.0, 0.0))), tuple(rng.get("w", (0.0, 0.0)))))
+                   command_range=(tuple(rng.get("v", (0.0, 0.0))), tuple(rng.get("w", (0.0, 0.0)))),
+                   lag=float(am.get("lag", 0.0)))
 
 
 def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,

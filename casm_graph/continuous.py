@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -106,7 +106,7 @@ class Problem:
     def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None):
         self.log, self.lay = log, lay
         cm: CommandModel = model.command
-        bv, bw = cm.basis(log.controls)
+        bv, bw = cm.basis(log.controls, log.dt)
         self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
         ref = float(np.median(log.dt))
         self.motion_sigma = (np.asarray(model.motion_noise, float)[None, :]
@@ -243,12 +243,12 @@ def with_state(model: Model, st: State) -> Model:
 
 def step_velocities(log: Log, model: Model) -> np.ndarray:
     """(T, 3) body-frame velocity of every command step under the model."""
-    return model.command.velocities(log.controls)
+    return model.command.velocities(log.controls, log.dt)
 
 
 def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
-    poses = G.integrate(start, model.command.velocities(controls) * dt[:, None])
+    poses = G.integrate(start, model.command.velocities(controls, dt) * dt[:, None])
     poses[:, 2] = wrap(poses[:, 2])
     return poses
 
@@ -325,7 +325,7 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
         poly0 = np.zeros(len(model.reading_poly))
         poly0[1] = k_hyp
     cm = model.command
-    nominal = for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0)
+    nominal = replace(for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0), lag=cm.lag)
     out = model.with_(command=nominal, reading_poly=poly0)
 
     ob = np.flatnonzero(~np.isnan(log.obs_bearing) & ~np.isnan(log.obs_reading))
@@ -479,3 +479,110 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
                       "windows_placed": init.windows_placed, "start_model": init.model,
                       "start_poses": init.poses, "knots": full.knots})
+
+
+# --------------------------------------------------------------------------- the actuator_lag effect
+EFFECTS = ("actuator_lag",)                         # catalog effects a continuous-command log can take
+LAG_GRID = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8)     # s; the profile starts on this grid
+LAG_MAX = 2.0
+LAG_ITERATIONS = 8
+
+
+@dataclass
+class LagProfile:
+    """Profile log-likelihood of the coarse graph against the lag (noise levels at their maximum, outliers fixed)."""
+
+    lag: float                     # the maximum
+    gain: float                    # log-density at the maximum minus at lag 0 (nats)
+    n_data: int                    # residual rows, for BIC
+    grid: list                     # (lag, log-density) pairs evaluated, in order
+
+
+def lag_profile(log: Log, fit: Fit, tol: float = 0.01) -> LagProfile:
+    """Profile the first-order lag on the coarse graph of a fitted continuous-command log.
+
+    Every evaluation sets the lag, keeps ``fit``'s set-aside sightings, lets poses, command map and
+    polynomial re-settle (LM from ``fit``'s own), moves each noise level to its maximum-likelihood
+    value and re-settles once more; its value is the log-likelihood with the noise levels
+    concentrated out, so two lags compare as a likelihood ratio on the same data. A grid brackets
+    the maximum, golden-section search refines it to ``tol`` seconds.
+    """
+    lay = layout(log, COARSE_KNOT_DT)
+    use = gate(log, fit.poses[log.obs_step], fit.model)
+    start = fit.poses[lay.knots]
+    seen: dict[float, float] = {}
+
+    def value(lag: float) -> float:
+        lag = round(float(lag), 4)
+        if lag not in seen:
+            m = fit.model.with_(command=replace(fit.model.command, lag=lag))
+            problem = Problem(log, lay, m, use)
+            st, _ = least_squares(problem, state(start, m), max_iterations=LAG_ITERATIONS)
+            m = _ml_noise(problem, st, with_state(m, st))
+            problem = Problem(log, lay, m, use)
+            st, _ = least_squares(problem, st, max_iterations=LAG_ITERATIONS // 2)
+            seen[lag] = _concentrated_log_likelihood(problem, st)
+        return seen[lag]
+
+    vals = [value(x) for x in LAG_GRID]
+    i = int(np.argmax(vals))
+    grid = list(LAG_GRID)
+    if i == len(grid) - 1:
+        grid.append(LAG_MAX)
+        value(LAG_MAX)
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    g = (np.sqrt(5) - 1) / 2
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    while hi - lo > tol:
+        if value(a) >= value(b):
+            hi, b = b, a
+            a = hi - g * (hi - lo)
+        else:
+            lo, a = a, b
+            b = lo + g * (hi - lo)
+    best = max(seen, key=seen.get)
+    problem = Problem(log, lay, fit.model, use)
+    n = 3 * (lay.n_poses - 1) + int(problem.r_sel.sum()) + int(problem.b_sel.sum())
+    return LagProfile(lag=float(best), gain=float(seen[best] - seen[0.0]), n_data=n,
+                      grid=sorted(seen.items()))
+
+
+def _group_sums(problem: Problem, st: State) -> dict:
+    ae, _, re, _, be, _, _ = problem.rows(st)
+    return {"forward": (ae[:, 0] ** 2, 0), "lateral": (ae[:, 1] ** 2, 1), "turn": (ae[:, 2] ** 2, 2),
+            "reading": (re ** 2, None), "bearing": (be ** 2, None)}
+
+
+def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
+    """Every noise level scaled to its maximum-likelihood value at ``st`` (whitened mean square 1)."""
+    g = {k: float(np.sqrt(np.mean(v))) for k, (v, _) in _group_sums(problem, st).items()}
+    m = np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]]
+    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g["reading"],
+                       bearing_sigma=model.bearing_sigma * g["bearing"])
+
+
+def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
+    """log p(data | poses, model) with each noise group's scale at its maximum, up to a constant
+    that does not depend on the poses or the command model: -n/2 log(sigma_ML^2) summed over groups."""
+    base = {"forward": problem.motion_sigma[:, 0], "lateral": problem.motion_sigma[:, 1],
+            "turn": problem.motion_sigma[:, 2]}
+    out = 0.0
+    for k, (w2, _) in _group_sums(problem, st).items():
+        ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
+        out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
+    return float(out)
+
+
+def fit_with_lag(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
+                 marginals: bool = True) -> Fit:
+    """``fit`` with the actuator_lag effect: fit without a lag, profile the lag, refit with the best one."""
+    progress = progress or Progress()
+    start = start or start_model(log)
+    base = fit(log, start, seed=seed, progress=progress, marginals=False)
+    progress.stage("actuator_lag profile", None)
+    prof = lag_profile(log, base)
+    out = fit(log, start.with_(command=replace(start.command, lag=prof.lag)), seed=seed, progress=progress,
+              marginals=marginals)
+    out.model = out.model.with_(effects={**out.model.effects, "actuator_lag": {"tau": prof.lag}})
+    out.notes["lag_profile"] = prof
+    return out

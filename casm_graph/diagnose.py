@@ -179,13 +179,13 @@ class Candidate:
     delta_log_likelihood: float
     parameters: dict = field(default_factory=dict)
     seconds: float = 0.0
+    heldout_skipped: str = "no in-sample gain (delta BIC >= 0), held-out folds not run"
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
                 "heldout_nll_drop": self.heldout_nll_drop, "explanation": self.explanation,
                 "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters,
-                **({} if np.isfinite(self.heldout_nll_drop) else
-                   {"heldout_skipped": "no in-sample gain (delta BIC >= 0), held-out folds not run"})}
+                **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped})}
 
 
 def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:

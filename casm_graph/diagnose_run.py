@@ -13,8 +13,8 @@ from .log import Log, LogError, load
 from .model import Model
 
 
-def start_trajectory(log: Log, model: Model, model_path: Path) -> np.ndarray:
-    """(T+1, 3) poses: RUN/trajectory.csv beside the model when it fits the log, else the EKF smoother's."""
+def _trajectory_csv(log: Log, model_path: Path) -> np.ndarray | None:
+    """(T+1, 3) poses from RUN/trajectory.csv beside the model, when it is there and fits the log."""
     tr = model_path.parent / "trajectory.csv"
     if tr.is_file():
         with open(tr) as f:
@@ -24,6 +24,14 @@ def start_trajectory(log: Log, model: Model, model_path: Path) -> np.ndarray:
                 return np.array([[float(r["x"]), float(r["y"]), float(r["theta"])] for r in rows])
             except (KeyError, ValueError):
                 pass
+    return None
+
+
+def start_trajectory(log: Log, model: Model, model_path: Path) -> np.ndarray:
+    """(T+1, 3) poses: RUN/trajectory.csv beside the model when it fits the log, else the EKF smoother's."""
+    poses = _trajectory_csv(log, model_path)
+    if poses is not None:
+        return poses
     from .methods.ekfs_em import fit as ekfs_fit
     return ekfs_fit(log, model, max_iterations=1).poses
 
@@ -40,8 +48,8 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     model = Model.load(model_path)
     log = load(log_dir)
     if log.controls is not None:
-        raise LogError(f"{log_dir}: diagnose works on action-table logs; continuous commands (v,w) are not "
-                       f"supported yet")
+        diag = _continuous(log, model, model_path, log_dir, progress)
+        return _write(diag, log, out, progress)
     check_compatible(log, model, model_path.name)
     model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                         action_ids=log.action_ids, velocity_std=None)
@@ -53,6 +61,25 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     poses = start_trajectory(log, model, model_path)
     diag = diagnose(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
                     candidates=candidates)
+    return _write(diag, log, out, progress)
+
+
+def _continuous(log: Log, model: Model, model_path: Path, log_dir, progress) -> Diagnosis:
+    """Continuous commands: the model's trajectory.csv (or a fresh fit's poses), then the continuous diagnosis."""
+    from . import continuous
+    from .diagnose_continuous import diagnose as diagnose_continuous
+    if model.command is None:
+        raise LogError(f"{model_path.name}: {log_dir} has continuous commands but the model has no command map "
+                       f"(action_model.kind 'command_poly'); calibrate this log first")
+    poses = _trajectory_csv(log, model_path)
+    if poses is None:
+        if progress is not None:
+            progress.stage("start trajectory", None)
+        poses = continuous.fit(log, model, marginals=False).poses
+    return diagnose_continuous(log, model, poses, progress=progress)
+
+
+def _write(diag: Diagnosis, log: Log, out, progress) -> Diagnosis:
     if progress is not None:
         progress.stage("report", None)
     out = Path(out)

@@ -28,7 +28,7 @@ def truth_fit(log: Log, form: CommandModel, knot_dt: float = 1.0, iterations: in
         raise LogError("truth.csv: needed to fit the command model against ground truth")
     lay = CT.layout(log, knot_dt)
     P = log.truth[lay.knots, 1:]
-    bv, bw = form.basis(log.controls)
+    bv, bw = form.basis(log.controls, log.dt)
     Bv, Bw = bv[lay.seg_idx], bw[lay.seg_idx]
     w = 1.0 / np.sqrt(np.maximum(lay.seg_time, 1e-9))[:, None]
     p = form.params.copy()

@@ -236,6 +236,8 @@ def group_panels(diag):
     axes[0].legend(fontsize=8)
     for k, ch in enumerate(("forward", "lateral", "turn")):
         d = diag.residuals[ch]
+        if "action" not in d.covariates:          # continuous commands: no actions
+            continue
         a = d.covariates["action"]
         ids = np.unique(a)
         m = [d.residual[a == i].mean() * np.sqrt((a == i).sum()) for i in ids]
@@ -243,7 +245,10 @@ def group_panels(diag):
         axes[1].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids], fontsize=6)
     axes[1].axhline(0, color="k", lw=0.5)
     axes[1].set(xlabel="action", ylabel="mean x sqrt(n) (z-score)", title="per action")
-    axes[1].legend(fontsize=8)
+    if axes[1].get_lines()[:-1]:
+        axes[1].legend(fontsize=8)
+    else:
+        axes[1].set_title("per action (continuous commands: no actions)")
     fig.tight_layout()
     return fig
 

@@ -37,6 +37,7 @@ class FloorConfig:
     bearing_sigma: float = 0.02               # rad
     speed: float = 0.4                        # m/s cruising
     margin: float = 0.8                       # waypoints this far inside the walls
+    lag: float = 0.0                          # s: the velocity follows the command through a first-order lag
     region_k: list = field(default_factory=list)   # filled by ``region_params``
 
 
@@ -84,6 +85,8 @@ def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
     cmd = np.empty((steps, 2))
     goal = rng.uniform([cfg.margin, cfg.margin], [W - cfg.margin, H - cfg.margin])
     speed = cfg.speed
+    vel = np.zeros(2)
+    keep = np.exp(-cfg.dt / cfg.lag) if cfg.lag > 0 else 0.0
     for k in range(steps):
         p = poses[k]
         to = goal - p[:2]
@@ -95,7 +98,8 @@ def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
         w = float(np.clip(1.5 * err, -0.8, 0.8))
         v = speed * (0.5 + 0.5 * max(np.cos(err), 0.0))
         cmd[k] = (v, w)
-        r_c, t_c = v * cfg.dt, w * cfg.dt
+        vel = cmd[k] if k == 0 else keep * vel + (1 - keep) * cmd[k]
+        r_c, t_c = vel[0] * cfg.dt, vel[1] * cfg.dt
         kr, kt, kd = K[region_of(p[:2], cfg.size, cfg.grid)[0]]
         r = r_c + rng.normal() * np.sqrt(kr * abs(r_c))
         th = t_c + rng.normal() * np.sqrt(kt * abs(t_c) + kd * abs(r_c))

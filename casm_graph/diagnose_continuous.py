@@ -1,0 +1,109 @@
+"""``diagnose`` for logs with continuous commands (e.g. the MRCLAM robots).
+
+The same residual analysis as :mod:`casm_graph.diagnose` (whiteness, binned means and spreads per
+covariate, strongest first) on the command-model graph of :mod:`casm_graph.continuous`: the model
+is re-settled on the log (poses, command map and polynomial; noise levels as given), and its
+motion residuals per knot-to-knot segment and its reading and bearing residuals per sighting are
+tested. ``time_since_action_change`` is the time since the command last moved by more than
+``COMMAND_CHANGE`` of its range. The catalog effect these graphs can take, ``actuator_lag``, is the
+candidate, scored by delta BIC from its profile log-likelihood
+(:func:`casm_graph.continuous.lag_profile`); time-blocked held-out folds are not run for
+continuous logs, so the verdict's second line of evidence is the residual structure the lag is
+built for.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+import factors
+
+from . import continuous as CT
+from .diagnose import Candidate, Diagnosis, channel_report, structures, verdict
+from .effects import REGISTRY
+from .log import Log, wrap
+from .methods.base import Fit
+from .model import Model
+from .residuals import Channel
+from .solve import least_squares
+
+COMMAND_CHANGE = 0.1
+SETTLE_ITERATIONS = 8
+
+
+def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndarray:
+    """(T,) seconds since either command last jumped by more than ``frac`` of its range."""
+    span = np.ptp(log.controls, axis=0)
+    jump = np.any(np.abs(np.diff(log.controls, axis=0)) > frac * np.where(span > 0, span, 1.0), axis=1)
+    last = np.maximum.accumulate(np.where(np.concatenate([[True], jump]), np.arange(log.steps), 0))
+    return log.t - log.t[last]
+
+
+def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[str, Channel]:
+    """Whitened residual channels of the continuous graph with the INTERFACE covariates it has."""
+    lay = problem.lay
+    P = st.poses
+    e, _ = factors.command.error(P[:-1], P[1:], st.params, problem.Bv, problem.Bw, lay.seg_dt)
+    v = model.command.velocities(log.controls, log.dt)
+    seg_v = (v[lay.seg_idx] * lay.seg_dt[:, :, None]).sum(axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
+    t = log.pose_times[lay.knots[:-1]] - log.t[0]
+    since = time_since_command_change(log)[lay.knots[:-1]]
+    cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "heading": P[:-1, 2], "speed": seg_v[:, 0],
+           "turn_rate": seg_v[:, 2], "time_since_action_change": since}
+    out = {}
+    for k, name in enumerate(("forward", "lateral", "turn")):
+        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov)
+    knot = lay.obs_knot
+    pose = P[knot]
+    lm = log.landmark_xy[log.landmark_index]
+    rel = lm - pose[:, :2]
+    dist = np.hypot(rel[:, 0], rel[:, 1])
+    bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - pose[:, 2])
+    reading = log.obs_reading - np.polynomial.polynomial.polyval(dist, st.poly)
+    bres = wrap(log.obs_bearing - bearing)
+    vo = v[np.minimum(log.obs_step, log.steps - 1)]
+    ot = log.obs_t - log.t[0]
+    scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
+            "turn_rate": vo[:, 2], "distance": dist, "bearing": bearing, "image_angle": bearing,
+            "landmark": log.obs_landmark.astype(float)}
+    for name, raw, sigma, sel in (("reading", reading, problem.reading_sigma, problem.r_sel),
+                                  ("bearing", bres, problem.bearing_sigma, problem.b_sel)):
+        keep = sel & np.isfinite(raw)
+        out[name] = Channel(name, raw[keep] / sigma, raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
+    return out
+
+
+def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagnosis:
+    """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and the lag candidate."""
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress.stage("refit model", None)
+    lay = CT.layout(log, CT.FULL_KNOT_DT)
+    use = CT.gate(log, poses[log.obs_step], model)
+    problem = CT.Problem(log, lay, model, use)
+    st, _ = least_squares(problem, CT.state(poses[lay.knots], model), max_iterations=SETTLE_ITERATIONS)
+    model = CT.with_state(model, st)
+    full = CT.fill_in(log, model, lay.knots, st.poses)
+    base = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
+    chs = channels(log, problem, st, model)
+    rep = channel_report(chs)
+    struct = structures(rep)
+    skipped = {n: "not available for continuous commands" for n in sorted(REGISTRY) if n not in CT.EFFECTS}
+    cands = []
+    if model.command.lag <= 0:
+        if progress is not None:
+            progress.stage("actuator_lag profile", None)
+        prof = CT.lag_profile(log, base)
+        lag = REGISTRY["actuator_lag"]
+        cands.append(Candidate(effect="actuator_lag", channel=lag.channel,
+                               delta_bic=float(-2 * prof.gain + np.log(prof.n_data)), heldout_nll_drop=float("nan"),
+                               explanation=("For continuous commands: the velocity follows the command map through "
+                                            f"a first-order lag of {prof.lag:.3f} s. " + lag.physics),
+                               delta_log_likelihood=prof.gain, parameters={"tau": prof.lag},
+                               heldout_skipped="held-out folds are not run for continuous-command logs"))
+    v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS})
+    if cands:
+        words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
+                     "residual structure it is built for.")
+    return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped)
