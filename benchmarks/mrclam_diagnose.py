@@ -3,9 +3,10 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/mrclam_diagnose.py [--robots 1 2 3 4 5] [--out mrclam_diag]
 
 Per robot, through the command line's code paths: ``calibrate`` (base), ``diagnose`` (residual
-structure and the actuator_lag candidate), ``calibrate --effect actuator_lag``, and
-:func:`casm_graph.groundtruth.evaluate` on both fits. Prints one row per robot (the README's table)
-and the three strongest residual structures of each base model; writes OUT/summary.json.
+structure and the candidates a continuous log can take), ``calibrate --effect E...`` with every
+candidate BIC supports strongly (delta BIC <= -10), and :func:`casm_graph.groundtruth.evaluate` on
+both fits. Prints one row per robot (the README's table) with the three strongest residual
+structures of each base model; writes OUT/summary.json.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import json
 from pathlib import Path
 
 from casm_graph import calibrate, diagnose_run, groundtruth, mrclam
+from casm_graph.diagnose import BIC_SUPPORT
 from casm_graph.log import load
 
 
@@ -22,19 +24,19 @@ def run_robot(data: Path, robot: int, out: Path) -> dict:
     mrclam.import_robot(data, robot, bundle)
     _, base = calibrate.run(bundle, out / f"robot{robot}")
     diag = diagnose_run.run(bundle, out / f"robot{robot}" / "model.json", out / f"robot{robot}_diag")
-    _, lagged = calibrate.run(bundle, out / f"robot{robot}_lag", effects=["actuator_lag"])
+    added = [c.effect for c in diag.candidates if c.delta_bic <= BIC_SUPPORT]
+    _, after = calibrate.run(bundle, out / f"robot{robot}_effects", effects=added) if added else (None, base)
     log = load(bundle)
-    ev = {name: groundtruth.evaluate(log, f) for name, f in (("base", base), ("lag", lagged))}
-    cand = diag.candidates[0].to_json() if diag.candidates else {}
+    ev = {name: groundtruth.evaluate(log, f) for name, f in (("base", base), ("after", after))}
     return {"verdict": diag.verdict, "summary": diag.words,
             "structure": [{k: s[k] for k in ("channel", "name", "kind", "strength")} for s in diag.structure[:3]],
-            "lag_candidate": {k: cand.get(k) for k in ("delta_bic", "delta_log_likelihood", "parameters")},
-            "fitted_lag": lagged.model.command.lag,
+            "candidates": [c.to_json() for c in diag.candidates], "added": added,
+            "fitted": after.model.effects,
             **{name: {"map_error": {k: e["map_error"][k]["fraction"] for k in ("v", "w")},
                       "position_rms": e["position_rms"]["calibrated_graph"],
                       "identity_graph": e["position_rms"]["identity_graph"],
                       "log_likelihood": f.log_likelihood}
-               for (name, e), f in zip(ev.items(), (base, lagged))}}
+               for (name, e), f in zip(ev.items(), (base, after))}}
 
 
 def main(argv=None) -> int:
@@ -46,14 +48,16 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     res = {}
-    print("| robot | verdict | strongest residual structure (omega squared) | lag tau s | delta BIC | "
-          "turn map % base -> lag | speed map % base -> lag | position RMS m base -> lag |")
+    print("| robot | verdict | strongest residual structure (omega squared) | candidates: delta BIC (fitted) | "
+          "added | turn map % base -> after | speed map % base -> after | position RMS m base -> after |")
     print("|---|---|---|---|---|---|---|---|")
     for r in a.robots:
         e = res[r] = run_robot(Path(a.data), r, out)
         s = "; ".join(f"{x['channel']} {x['kind']} vs {x['name']} {x['strength']:.3f}" for x in e["structure"]) or "none"
-        b, g = e["base"], e["lag"]
-        print(f"| {r} | {e['verdict']} | {s} | {e['fitted_lag']:.3f} | {e['lag_candidate']['delta_bic']:.0f} | "
+        c = "; ".join(f"{x['effect']} {x['delta_bic']:.0f} ({', '.join(f'{k} {v:.3g}' for k, v in x['parameters'].items())})"
+                      for x in e["candidates"])
+        b, g = e["base"], e["after"]
+        print(f"| {r} | {e['verdict']} | {s} | {c} | {', '.join(e['added']) or 'none'} | "
               f"{100 * b['map_error']['w']:.1f} -> {100 * g['map_error']['w']:.1f} | "
               f"{100 * b['map_error']['v']:.1f} -> {100 * g['map_error']['v']:.1f} | "
               f"{b['position_rms']:.3f} -> {g['position_rms']:.3f} |", flush=True)

@@ -94,10 +94,12 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
         other = sorted({cls.name for cls in classes} - set(continuous.EFFECTS))
         if other:
             raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
-                           f"{', '.join(continuous.EFFECTS)} is available")
+                           f"{' and '.join(continuous.EFFECTS)} are available")
         start = continuous.start_model(log, sensor_degree)
-        fitter = continuous.fit_with_lag if classes else continuous.fit
-        fit = fitter(log, start, seed=seed, progress=progress)
+        if classes:
+            fit = continuous.fit_with_effects(log, start, [cls.name for cls in classes], seed=seed, progress=progress)
+        else:
+            fit = continuous.fit(log, start, seed=seed, progress=progress)
         if progress is not None:
             progress.stage("report", None)
         out = Path(out)

@@ -119,6 +119,7 @@ class Problem:
         self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
         self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
+        self.lens_k = lens_k(model)
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
         self.p_mean = nominal.params
@@ -130,6 +131,12 @@ class Problem:
         w = 1.0 / self.motion_sigma
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
+        if self.lens_k:          # reading = f(d) (1 + k ia^2), the image angle ia = bearing (fixed camera)
+            ia, Jia = factors.bearing.error(P[self.r_knot], self.r_lm, np.zeros(len(self.r_z)))
+            sc = 1.0 + self.lens_k * ia ** 2
+            f = e + self.r_z[:, None]
+            J = [sc[:, :, None] * J[0] + (2 * self.lens_k * f * ia)[:, :, None] * Jia[0], sc[:, :, None] * J[1]]
+            e = sc * f - self.r_z[:, None]
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
         w = huber(re)
         re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
@@ -224,12 +231,23 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
                        bearing_sigma=model.bearing_sigma * new["bearing"])
 
 
+def lens_k(model: Model) -> float:
+    """The lens_distortion coefficient of a continuous-command model (0 without the effect)."""
+    return float(model.effects.get("lens_distortion", {}).get("k", 0.0))
+
+
+def predicted_reading(model: Model, distance: np.ndarray, image_angle: np.ndarray) -> np.ndarray:
+    """The sensor polynomial at ``distance``, with the lens_distortion factor when the model has it."""
+    return model.reading(distance) * (1.0 + lens_k(model) * image_angle ** 2)
+
+
 def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = GATE) -> tuple[np.ndarray, np.ndarray]:
     """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
     rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
     d = np.hypot(rel[:, 0], rel[:, 1])
-    r = np.abs(log.obs_reading - model.reading(d)) / model.reading_sigma
-    b = np.abs(wrap(log.obs_bearing - np.arctan2(rel[:, 1], rel[:, 0]) + poses_at_obs[:, 2])) / model.bearing_sigma
+    bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
+    r = np.abs(log.obs_reading - predicted_reading(model, d, bearing)) / model.reading_sigma
+    b = np.abs(wrap(log.obs_bearing - bearing)) / model.bearing_sigma
     return ~(r > z), ~(b > z)
 
 
@@ -481,59 +499,87 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                       "start_poses": init.poses, "knots": full.knots})
 
 
-# --------------------------------------------------------------------------- the actuator_lag effect
-EFFECTS = ("actuator_lag",)                         # catalog effects a continuous-command log can take
-LAG_GRID = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8)     # s; the profile starts on this grid
-LAG_MAX = 2.0
-LAG_ITERATIONS = 8
+# --------------------------------------------------------------------------- effects for continuous commands
+EFFECTS = ("actuator_lag", "lens_distortion")     # catalog effects a continuous-command log can take
+PROFILE_GRID = {"actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),        # tau, s
+                "lens_distortion": (-0.4, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.4)}   # k, per rad^2
+PROFILE_BOUNDS = {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)}
+PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
+PROFILE_ITERATIONS = 8
+
+
+def with_effect(model: Model, name: str, value: float) -> Model:
+    """``model`` with one continuous-log effect's parameter set (0 switches it off)."""
+    if name == "actuator_lag":
+        return model.with_(command=replace(model.command, lag=float(value)),
+                           effects={**{k: v for k, v in model.effects.items() if k != name},
+                                    **({name: {"tau": float(value)}} if value else {})})
+    if name == "lens_distortion":
+        return model.with_(effects={**{k: v for k, v in model.effects.items() if k != name},
+                                    **({name: {"k": float(value)}} if value else {})})
+    raise LogError(f"--effect {name}: for continuous commands only {', '.join(EFFECTS)} are available")
+
+
+def effect_value(model: Model, name: str) -> float:
+    return model.command.lag if name == "actuator_lag" else lens_k(model)
 
 
 @dataclass
-class LagProfile:
-    """Profile log-likelihood of the coarse graph against the lag (noise levels at their maximum, outliers fixed)."""
+class Profile:
+    """Profile log-likelihood of the coarse graph against one effect's parameter (noise at its maximum, outliers fixed)."""
 
-    lag: float                     # the maximum
-    gain: float                    # log-density at the maximum minus at lag 0 (nats)
+    effect: str
+    value: float                   # the maximum
+    gain: float                    # log-likelihood at the maximum minus with the effect off (nats)
     n_data: int                    # residual rows, for BIC
-    grid: list                     # (lag, log-density) pairs evaluated, in order
+    grid: list                     # (value, log-likelihood) pairs evaluated, in order
+
+    @property
+    def delta_bic(self) -> float:
+        return float(-2 * self.gain + np.log(self.n_data))
 
 
-def lag_profile(log: Log, fit: Fit, tol: float = 0.01) -> LagProfile:
-    """Profile the first-order lag on the coarse graph of a fitted continuous-command log.
+def profile(log: Log, fit: Fit, name: str) -> Profile:
+    """Profile one continuous-log effect's parameter on the coarse graph of a fitted log.
 
-    Every evaluation sets the lag, keeps ``fit``'s set-aside sightings, lets poses, command map and
-    polynomial re-settle (LM from ``fit``'s own), moves each noise level to its maximum-likelihood
-    value and re-settles once more; its value is the log-likelihood with the noise levels
-    concentrated out, so two lags compare as a likelihood ratio on the same data. A grid brackets
-    the maximum, golden-section search refines it to ``tol`` seconds.
+    Every evaluation sets the parameter, keeps ``fit``'s set-aside sightings, lets poses, command
+    map and polynomial re-settle (LM from ``fit``'s own), moves each noise level to its
+    maximum-likelihood value and re-settles once more; its value is the log-likelihood with the
+    noise levels concentrated out, so two settings compare as a likelihood ratio on the same data.
+    A grid brackets the maximum, golden-section search refines it.
     """
     lay = layout(log, COARSE_KNOT_DT)
     use = gate(log, fit.poses[log.obs_step], fit.model)
     start = fit.poses[lay.knots]
     seen: dict[float, float] = {}
 
-    def value(lag: float) -> float:
-        lag = round(float(lag), 4)
-        if lag not in seen:
-            m = fit.model.with_(command=replace(fit.model.command, lag=lag))
+    def value(x: float) -> float:
+        x = round(float(x), 5)
+        if x not in seen:
+            m = with_effect(fit.model, name, x)
             problem = Problem(log, lay, m, use)
-            st, _ = least_squares(problem, state(start, m), max_iterations=LAG_ITERATIONS)
+            st, _ = least_squares(problem, state(start, m), max_iterations=PROFILE_ITERATIONS)
             m = _ml_noise(problem, st, with_state(m, st))
             problem = Problem(log, lay, m, use)
-            st, _ = least_squares(problem, st, max_iterations=LAG_ITERATIONS // 2)
-            seen[lag] = _concentrated_log_likelihood(problem, st)
-        return seen[lag]
+            st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
+            seen[x] = _concentrated_log_likelihood(problem, st)
+        return seen[x]
 
-    vals = [value(x) for x in LAG_GRID]
+    grid = list(PROFILE_GRID[name])
+    lo_b, hi_b = PROFILE_BOUNDS[name]
+    vals = [value(x) for x in grid]
     i = int(np.argmax(vals))
-    grid = list(LAG_GRID)
     if i == len(grid) - 1:
-        grid.append(LAG_MAX)
-        value(LAG_MAX)
+        grid.append(hi_b)
+        value(hi_b)
+    elif i == 0 and grid[0] > lo_b:
+        grid.insert(0, lo_b)
+        value(lo_b)
+        i += 1
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
     g = (np.sqrt(5) - 1) / 2
     a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-    while hi - lo > tol:
+    while hi - lo > PROFILE_TOL[name]:
         if value(a) >= value(b):
             hi, b = b, a
             a = hi - g * (hi - lo)
@@ -543,19 +589,19 @@ def lag_profile(log: Log, fit: Fit, tol: float = 0.01) -> LagProfile:
     best = max(seen, key=seen.get)
     problem = Problem(log, lay, fit.model, use)
     n = 3 * (lay.n_poses - 1) + int(problem.r_sel.sum()) + int(problem.b_sel.sum())
-    return LagProfile(lag=float(best), gain=float(seen[best] - seen[0.0]), n_data=n,
-                      grid=sorted(seen.items()))
+    return Profile(effect=name, value=float(best), gain=float(seen[best] - value(0.0)), n_data=n,
+                   grid=sorted(seen.items()))
 
 
 def _group_sums(problem: Problem, st: State) -> dict:
     ae, _, re, _, be, _, _ = problem.rows(st)
-    return {"forward": (ae[:, 0] ** 2, 0), "lateral": (ae[:, 1] ** 2, 1), "turn": (ae[:, 2] ** 2, 2),
-            "reading": (re ** 2, None), "bearing": (be ** 2, None)}
+    return {"forward": ae[:, 0] ** 2, "lateral": ae[:, 1] ** 2, "turn": ae[:, 2] ** 2,
+            "reading": re ** 2, "bearing": be ** 2}
 
 
 def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
     """Every noise level scaled to its maximum-likelihood value at ``st`` (whitened mean square 1)."""
-    g = {k: float(np.sqrt(np.mean(v))) for k, (v, _) in _group_sums(problem, st).items()}
+    g = {k: float(np.sqrt(np.mean(v))) for k, v in _group_sums(problem, st).items()}
     m = np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]]
     return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g["reading"],
                        bearing_sigma=model.bearing_sigma * g["bearing"])
@@ -567,22 +613,29 @@ def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
     base = {"forward": problem.motion_sigma[:, 0], "lateral": problem.motion_sigma[:, 1],
             "turn": problem.motion_sigma[:, 2]}
     out = 0.0
-    for k, (w2, _) in _group_sums(problem, st).items():
+    for k, w2 in _group_sums(problem, st).items():
         ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
         out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
     return float(out)
 
 
-def fit_with_lag(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
-                 marginals: bool = True) -> Fit:
-    """``fit`` with the actuator_lag effect: fit without a lag, profile the lag, refit with the best one."""
+def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
+                     progress: Progress | None = None, marginals: bool = True) -> Fit:
+    """``fit`` with continuous-log effects: fit without them, profile each in turn (each with the ones
+    before it set), refit with all of them at their profile maxima."""
     progress = progress or Progress()
     start = start or start_model(log)
+    unknown = [e for e in effects if e not in EFFECTS]
+    if unknown:
+        raise LogError(f"--effect {', '.join(unknown)}: for continuous commands only {', '.join(EFFECTS)} are available")
     base = fit(log, start, seed=seed, progress=progress, marginals=False)
-    progress.stage("actuator_lag profile", None)
-    prof = lag_profile(log, base)
-    out = fit(log, start.with_(command=replace(start.command, lag=prof.lag)), seed=seed, progress=progress,
-              marginals=marginals)
-    out.model = out.model.with_(effects={**out.model.effects, "actuator_lag": {"tau": prof.lag}})
-    out.notes["lag_profile"] = prof
+    profiles = []
+    for name in effects:
+        progress.stage(f"{name} profile", None)
+        prof = profile(log, base, name)
+        profiles.append(prof)
+        base.model = with_effect(base.model, name, prof.value)
+        start = with_effect(start, name, prof.value)
+    out = fit(log, start, seed=seed, progress=progress, marginals=marginals)
+    out.notes["profiles"] = profiles
     return out

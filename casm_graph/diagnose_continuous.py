@@ -5,11 +5,11 @@ covariate, strongest first) on the command-model graph of :mod:`casm_graph.conti
 is re-settled on the log (poses, command map and polynomial; noise levels as given), and its
 motion residuals per knot-to-knot segment and its reading and bearing residuals per sighting are
 tested. ``time_since_action_change`` is the time since the command last moved by more than
-``COMMAND_CHANGE`` of its range. The catalog effect these graphs can take, ``actuator_lag``, is the
-candidate, scored by delta BIC from its profile log-likelihood
-(:func:`casm_graph.continuous.lag_profile`); time-blocked held-out folds are not run for
-continuous logs, so the verdict's second line of evidence is the residual structure the lag is
-built for.
+``COMMAND_CHANGE`` of its range; with a fixed camera the image angle is the bearing (listed first,
+so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
+candidates, each scored by delta BIC from its profile log-likelihood
+(:func:`casm_graph.continuous.profile`); time-blocked held-out folds are not run for continuous
+logs, so the verdict's second line of evidence is the residual structure the effect is built for.
 """
 from __future__ import annotations
 
@@ -29,6 +29,10 @@ from .residuals import Channel
 from .solve import least_squares
 
 COMMAND_CHANGE = 0.1
+WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a first-order lag "
+                        "of {:.3f} s.",
+        "lens_distortion": "For a fixed camera the image angle is the bearing: the reading is the polynomial times "
+                           "(1 + {:.4f} bearing^2)."}
 SETTLE_ITERATIONS = 8
 
 
@@ -60,12 +64,12 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     rel = lm - pose[:, :2]
     dist = np.hypot(rel[:, 0], rel[:, 1])
     bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - pose[:, 2])
-    reading = log.obs_reading - np.polynomial.polynomial.polyval(dist, st.poly)
+    reading = log.obs_reading - CT.predicted_reading(model, dist, bearing)
     bres = wrap(log.obs_bearing - bearing)
     vo = v[np.minimum(log.obs_step, log.steps - 1)]
     ot = log.obs_t - log.t[0]
     scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
-            "turn_rate": vo[:, 2], "distance": dist, "bearing": bearing, "image_angle": bearing,
+            "turn_rate": vo[:, 2], "distance": dist, "image_angle": bearing, "bearing": bearing,
             "landmark": log.obs_landmark.astype(float)}
     for name, raw, sigma, sel in (("reading", reading, problem.reading_sigma, problem.r_sel),
                                   ("bearing", bres, problem.bearing_sigma, problem.b_sel)):
@@ -91,17 +95,20 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
     struct = structures(rep)
     skipped = {n: "not available for continuous commands" for n in sorted(REGISTRY) if n not in CT.EFFECTS}
     cands = []
-    if model.command.lag <= 0:
-        if progress is not None:
-            progress.stage("actuator_lag profile", None)
-        prof = CT.lag_profile(log, base)
-        lag = REGISTRY["actuator_lag"]
-        cands.append(Candidate(effect="actuator_lag", channel=lag.channel,
-                               delta_bic=float(-2 * prof.gain + np.log(prof.n_data)), heldout_nll_drop=float("nan"),
-                               explanation=("For continuous commands: the velocity follows the command map through "
-                                            f"a first-order lag of {prof.lag:.3f} s. " + lag.physics),
-                               delta_log_likelihood=prof.gain, parameters={"tau": prof.lag},
+    todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0]
+    if progress is not None and todo:
+        progress.stage("candidates", len(todo), unit="effects")
+    for name in todo:
+        prof = CT.profile(log, base, name)
+        eff = REGISTRY[name]
+        (param,) = eff.params
+        cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=prof.delta_bic,
+                               heldout_nll_drop=float("nan"), explanation=f"{WHAT[name].format(prof.value)} {eff.physics}",
+                               delta_log_likelihood=prof.gain, parameters={param: prof.value},
                                heldout_skipped="held-out folds are not run for continuous-command logs"))
+        if progress is not None:
+            progress.step(1)
+    cands.sort(key=lambda c: c.delta_bic)
     v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS})
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "

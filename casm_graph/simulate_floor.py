@@ -38,6 +38,7 @@ class FloorConfig:
     speed: float = 0.4                        # m/s cruising
     margin: float = 0.8                       # waypoints this far inside the walls
     lag: float = 0.0                          # s: the velocity follows the command through a first-order lag
+    lens_k: float = 0.0                       # the range reads (1 + lens_k bearing^2) times the distance
     region_k: list = field(default_factory=list)   # filled by ``region_params``
 
 
@@ -112,7 +113,8 @@ def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
         b = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses[k, 2])
         vis = np.flatnonzero((d < cfg.max_range) & (np.abs(b) < cfg.half_fov) & (rng.random(len(lm)) < cfg.detect_prob))
         for j in vis:
-            rows.append((t[k], j, d[j] + rng.normal(0, cfg.range_sigma), wrap(b[j] + rng.normal(0, cfg.bearing_sigma))))
+            rows.append((t[k], j, d[j] * (1 + cfg.lens_k * b[j] ** 2) + rng.normal(0, cfg.range_sigma),
+                         wrap(b[j] + rng.normal(0, cfg.bearing_sigma))))
     obs = np.array(rows, float).reshape(-1, 4)
     log = Log(landmark_ids=np.arange(len(lm)), landmark_xy=lm, t=t[:-1], action=None, controls=cmd,
               control_names=("v", "w"), obs_t=obs[:, 0], obs_landmark=obs[:, 1].astype(np.int64),

@@ -2,7 +2,8 @@
 
 A floor log (simulate_floor) whose robot follows its (v, w) commands through a known first-order
 lag: the lag's profile finds it, ``calibrate --effect actuator_lag`` writes it, ``diagnose`` ranks
-it as a candidate and reports the residual channels.
+it first and reports the residual channels. Another floor's range reads long or short with the
+square of the bearing (a lens): ``calibrate --effect lens_distortion`` finds its coefficient.
 """
 import json
 from dataclasses import replace
@@ -10,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from casm_graph import continuous as CT
 from casm_graph.cli import main
 from casm_graph.command_model import CommandModel, lagged
 from casm_graph.log import write
@@ -73,18 +75,18 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
                  str(tmp_path / "diag"), "--quiet"]) == 0
     diag = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     assert set(diag["channels"]) == {"forward", "lateral", "turn", "reading", "bearing"}
-    (cand,) = diag["candidates"]
-    assert cand["effect"] == "actuator_lag" and cand["delta_bic"] < -10
-    assert cand["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
-    assert cand["heldout_nll_drop"] is None and "continuous" in cand["heldout_skipped"]
-    assert "lens_distortion" in diag["not_applicable"]
+    lag, lens = diag["candidates"]                           # most supported first
+    assert lag["effect"] == "actuator_lag" and lag["delta_bic"] < -10 and lens["effect"] == "lens_distortion"
+    assert lag["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
+    assert lag["heldout_nll_drop"] is None and "continuous" in lag["heldout_skipped"]
+    assert "battery_fade" in diag["not_applicable"]
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
 
 
 def test_other_effects_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
     d, _ = lag_floor
-    assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "lens_distortion", "--quiet"]) == 2
-    assert "only actuator_lag" in capsys.readouterr().err
+    assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "battery_fade", "--quiet"]) == 2
+    assert "only actuator_lag and lens_distortion" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
 
 
@@ -97,3 +99,43 @@ def test_diagnose_refuses_a_table_model_on_a_continuous_log(lag_floor, tmp_path,
                  "--quiet"]) == 2
     assert "no command map" in capsys.readouterr().err
     assert not (tmp_path / "diag").exists()
+
+
+def test_lens_rows_jacobian_matches_numerical():
+    log, _ = simulate(FloorConfig(minutes=0.5, seed=3, dt=0.1, lens_k=-0.1))
+    m = CT.start_model(log).with_(reading_poly=np.array([0.02, 1.01, 0.0, -0.001]), reading_sigma=10.0)
+    m = CT.with_effect(m, "lens_distortion", -0.15)         # a wide sigma keeps every row inside Huber's core
+    lay = CT.layout(log, CT.COARSE_KNOT_DT)
+    problem = CT.Problem(log, lay, m)
+    st = CT.state(log.truth[lay.knots, 1:] + 0.01, m)
+    _, _, re, (Jp, Jc), _, _, _ = problem.rows(st)
+    assert np.all(CT.huber(re) == 1.0)
+
+    def reading_rows(poses=st.poses, poly=st.poly):
+        return problem.rows(CT.State(poses, st.params, poly))[2]
+
+    h = 1e-6
+    for j in range(3):                  # body-frame tangent step, as GTSAM's Pose2 retract to first order
+        def moved(eps):
+            P = st.poses
+            c, s = np.cos(P[:, 2]), np.sin(P[:, 2])
+            t = np.zeros(3)
+            t[j] = eps
+            return np.column_stack([P[:, 0] + c * t[0] - s * t[1], P[:, 1] + s * t[0] + c * t[1], P[:, 2] + t[2]])
+        num = (reading_rows(poses=moved(h)) - reading_rows(poses=moved(-h))) / (2 * h)
+        assert np.allclose(Jp[:, j], num, atol=1e-6)
+    for i in range(len(st.poly)):
+        d = np.zeros_like(st.poly)
+        d[i] = h
+        num = (reading_rows(poly=st.poly + d) - reading_rows(poly=st.poly - d)) / (2 * h)
+        assert np.allclose(Jc[:, i], num, atol=1e-6)
+
+
+@pytest.mark.science
+def test_calibrate_finds_a_lens(tmp_path):
+    log, _ = simulate(FloorConfig(minutes=4, seed=1, dt=0.1, lens_k=-0.1, detect_prob=0.4))
+    write(log, tmp_path / "lens")
+    assert main(["calibrate", str(tmp_path / "lens"), "--out", str(tmp_path / "run"), "--effect", "lens_distortion",
+                 "--quiet"]) == 0
+    k = json.loads((tmp_path / "run" / "model.json").read_text())["effects"]["lens_distortion"]["k"]
+    assert k == pytest.approx(-0.1, abs=0.03), k
