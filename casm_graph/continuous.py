@@ -407,11 +407,11 @@ def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: i
 
 
 def identity_model(log: Log, like: Model) -> Model:
-    """The uncalibrated models: actual velocity = command, reading = distance; noise levels of ``like``."""
+    """The uncalibrated models: actual velocity = command, reading = distance, no effects; noise levels of ``like``."""
     poly = np.zeros(len(like.reading_poly))
     poly[1] = 1.0
     cm = for_commands(log.controls, len(like.command.v_coef) - 1, len(like.command.w_coef) - 1, gain=1.0)
-    return like.with_(command=cm, reading_poly=poly)
+    return like.with_(command=cm, reading_poly=poly, effects={})
 
 
 def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, rounds: int, iterations: int,
@@ -558,11 +558,14 @@ def profile(log: Log, fit: Fit, name: str) -> Profile:
         if x not in seen:
             m = with_effect(fit.model, name, x)
             problem = Problem(log, lay, m, use)
-            st, _ = least_squares(problem, state(start, m), max_iterations=PROFILE_ITERATIONS)
-            m = _ml_noise(problem, st, with_state(m, st))
-            problem = Problem(log, lay, m, use)
-            st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
-            seen[x] = _concentrated_log_likelihood(problem, st)
+            try:
+                st, _ = least_squares(problem, state(start, m), max_iterations=PROFILE_ITERATIONS)
+                m = _ml_noise(problem, st, with_state(m, st))
+                problem = Problem(log, lay, m, use)
+                st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
+                seen[x] = _concentrated_log_likelihood(problem, st)
+            except RuntimeError:            # GTSAM: the graph is indeterminate at this setting, no maximum here
+                seen[x] = -np.inf
         return seen[x]
 
     grid = list(PROFILE_GRID[name])
@@ -603,6 +606,7 @@ def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
     """Every noise level scaled to its maximum-likelihood value at ``st`` (whitened mean square 1)."""
     g = {k: float(np.sqrt(np.mean(v))) for k, v in _group_sums(problem, st).items()}
     m = np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]]
+    m[1] = min(m[1], m[0])      # as in estimate_noise: lateral noise no larger than forward
     return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g["reading"],
                        bearing_sigma=model.bearing_sigma * g["bearing"])
 
@@ -621,21 +625,20 @@ def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
 
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
                      progress: Progress | None = None, marginals: bool = True) -> Fit:
-    """``fit`` with continuous-log effects: fit without them, profile each in turn (each with the ones
-    before it set), refit with all of them at their profile maxima."""
+    """``fit`` with continuous-log effects: fit without them, then for each in turn profile it on the
+    latest fit and refit with it set at its maximum."""
     progress = progress or Progress()
     start = start or start_model(log)
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise LogError(f"--effect {', '.join(unknown)}: for continuous commands only {', '.join(EFFECTS)} are available")
-    base = fit(log, start, seed=seed, progress=progress, marginals=False)
+    out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects)
     profiles = []
-    for name in effects:
+    for i, name in enumerate(effects):
         progress.stage(f"{name} profile", None)
-        prof = profile(log, base, name)
+        prof = profile(log, out, name)
         profiles.append(prof)
-        base.model = with_effect(base.model, name, prof.value)
         start = with_effect(start, name, prof.value)
-    out = fit(log, start, seed=seed, progress=progress, marginals=marginals)
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and i == len(effects) - 1)
     out.notes["profiles"] = profiles
     return out
