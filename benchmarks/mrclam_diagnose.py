@@ -6,7 +6,8 @@ Per robot, through the command line's code paths: ``calibrate`` (base), ``diagno
 structure and the candidates a continuous log can take), ``calibrate --effect E...`` with every
 candidate BIC supports strongly (delta BIC <= -10), and :func:`casm_graph.groundtruth.evaluate` on
 both fits. Prints one row per robot (the README's table) with the three strongest residual
-structures of each base model; writes OUT/summary.json.
+structures of each base model and the position RMS over the identity-model graph's (the uncalibrated
+models, no effects; the issue's target is at most 0.5); writes OUT/summary.json.
 """
 from __future__ import annotations
 
@@ -49,8 +50,9 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     res = {}
     print("| robot | verdict | strongest residual structure (omega squared) | candidates: delta BIC (fitted) | "
-          "added | turn map % base -> after | speed map % base -> after | position RMS m base -> after |")
-    print("|---|---|---|---|---|---|---|---|")
+          "added | turn map % base -> after | speed map % base -> after | position RMS m base -> after | "
+          "identity-model graph m | ratio base -> after |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in a.robots:
         e = res[r] = run_robot(Path(a.data), r, out)
         s = "; ".join(f"{x['channel']} {x['kind']} vs {x['name']} {x['strength']:.3f}" for x in e["structure"]) or "none"
@@ -60,7 +62,9 @@ def main(argv=None) -> int:
         print(f"| {r} | {e['verdict']} | {s} | {c} | {', '.join(e['added']) or 'none'} | "
               f"{100 * b['map_error']['w']:.1f} -> {100 * g['map_error']['w']:.1f} | "
               f"{100 * b['map_error']['v']:.1f} -> {100 * g['map_error']['v']:.1f} | "
-              f"{b['position_rms']:.3f} -> {g['position_rms']:.3f} |", flush=True)
+              f"{b['position_rms']:.3f} -> {g['position_rms']:.3f} | {b['identity_graph']:.3f} | "
+              f"{b['position_rms'] / b['identity_graph']:.2f} -> {g['position_rms'] / b['identity_graph']:.2f} |",
+              flush=True)
     (out / "summary.json").write_text(json.dumps(res, indent=2, default=float))
     return 0
 
