@@ -81,8 +81,11 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
             else:
                 system = lin.clone()
                 system.push_back(_damping(keys_dims, lam))
-                trial = problem.retract(st, system.optimize())
-            new_cost = problem.cost(trial)
+                try:
+                    trial = problem.retract(st, system.optimize())
+                except RuntimeError:        # GTSAM: indeterminate at this damping; damp more, as for a failed step
+                    trial = None
+            new_cost = problem.cost(trial) if trial is not None else np.inf
             if np.isfinite(new_cost) and new_cost <= cost:
                 lam = max(lam / 10.0, 1e-9)
                 break
