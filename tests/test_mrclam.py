@@ -153,8 +153,9 @@ def test_short_window_calibration_of_robot1_against_vicon(robot1, tmp_path):
     err, pos = _against_vicon(robot1, run)
     print(f"turn map {100 * err['w']['fraction']:.1f} % of range, speed map {100 * err['v']['fraction']:.1f} %, "
           f"position RMS {pos:.3f} m")
-    # measured bounds of this implementation, not the issue's targets (see README: not met yet). A 2-minute
-    # window holds too few sightings to pin the trajectory (~1.3 m RMS); the whole log reaches ~0.25 m.
+    # measured bounds of the base model (no effects; the issue's targets are met with the effects the
+    # diagnosis finds, see test_issue7_targets_...). A 2-minute window holds too few sightings to pin
+    # the trajectory (~1.3 m RMS); the whole log reaches ~0.25 m.
     assert err["w"]["fraction"] < 0.15
     assert pos < (0.4 if FULL else 2.0)
 
@@ -179,12 +180,12 @@ def test_robot4_whole_log_lands_in_the_right_basin(tmp_path):
 
 @needs_data
 @pytest.mark.science
-@pytest.mark.parametrize("robot", [1, 2, 3, 4, 5] if FULL else [2])
+@pytest.mark.parametrize("robot", [1, 2, 3, 4, 5] if FULL else [1])
 def test_issue7_targets_with_the_effects_the_diagnosis_finds(robot, tmp_path):
     """Whole log: calibrate, diagnose, add every strongly supported candidate, judge against Vicon.
 
     The issue's targets: turn map < 5 % and speed map < 10 % of range, position RMS at most half the
-    identity-model graph's. CI runs robot 2 with the two effects the diagnosis finds on every robot
+    identity-model graph's. CI runs robot 1 with the two effects the diagnosis finds on every robot
     (CASM_FULL=1 runs the diagnosis itself on all five).
     """
     bundle = tmp_path / f"robot{robot}"
