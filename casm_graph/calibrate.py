@@ -91,10 +91,7 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
         if method != "graph":
             raise LogError(f"--method {method}: continuous commands (commands.csv 'v,w') are calibrated "
                            f"by the graph method only")
-        other = sorted({cls.name for cls in classes} - set(continuous.EFFECTS))
-        if other:
-            raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
-                           f"{' and '.join(continuous.EFFECTS)} are available")
+        continuous.check_effects(cls.name for cls in classes)
         start = continuous.start_model(log, sensor_degree)
         if classes:
             fit = continuous.fit_with_effects(log, start, [cls.name for cls in classes], seed=seed, progress=progress)

@@ -241,13 +241,21 @@ def predicted_reading(model: Model, distance: np.ndarray, image_angle: np.ndarra
     return model.reading(distance) * (1.0 + lens_k(model) * image_angle ** 2)
 
 
-def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = GATE) -> tuple[np.ndarray, np.ndarray]:
-    """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
+def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model) -> dict:
+    """Per sighting: distance and bearing from its pose, and the reading and bearing residuals
+    (measured minus predicted, in the sensor's units; NaN where not measured)."""
     rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
     d = np.hypot(rel[:, 0], rel[:, 1])
     bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
-    r = np.abs(log.obs_reading - predicted_reading(model, d, bearing)) / model.reading_sigma
-    b = np.abs(wrap(log.obs_bearing - bearing)) / model.bearing_sigma
+    return {"distance": d, "bearing": bearing, "reading": log.obs_reading - predicted_reading(model, d, bearing),
+            "bearing_residual": wrap(log.obs_bearing - bearing)}
+
+
+def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = GATE) -> tuple[np.ndarray, np.ndarray]:
+    """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
+    res = sighting_residuals(log, poses_at_obs, model)
+    r = np.abs(res["reading"]) / model.reading_sigma
+    b = np.abs(res["bearing_residual"]) / model.bearing_sigma
     return ~(r > z), ~(b > z)
 
 
@@ -508,16 +516,23 @@ PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
 PROFILE_ITERATIONS = 8
 
 
+def check_effects(names) -> None:
+    """LogError unless every name is an effect a continuous-command log can take."""
+    other = sorted(set(names) - set(EFFECTS))
+    if other:
+        raise LogError(f"--effect {', '.join(other)}: for continuous commands only {' and '.join(EFFECTS)} "
+                       f"are available")
+
+
 def with_effect(model: Model, name: str, value: float) -> Model:
     """``model`` with one continuous-log effect's parameter set (0 switches it off)."""
+    check_effects([name])
+    param = {"actuator_lag": "tau", "lens_distortion": "k"}[name]
+    effects = {**{k: v for k, v in model.effects.items() if k != name},
+               **({name: {param: float(value)}} if value else {})}
     if name == "actuator_lag":
-        return model.with_(command=replace(model.command, lag=float(value)),
-                           effects={**{k: v for k, v in model.effects.items() if k != name},
-                                    **({name: {"tau": float(value)}} if value else {})})
-    if name == "lens_distortion":
-        return model.with_(effects={**{k: v for k, v in model.effects.items() if k != name},
-                                    **({name: {"k": float(value)}} if value else {})})
-    raise LogError(f"--effect {name}: for continuous commands only {', '.join(EFFECTS)} are available")
+        return model.with_(command=replace(model.command, lag=float(value)), effects=effects)
+    return model.with_(effects=effects)
 
 
 def effect_value(model: Model, name: str) -> float:
@@ -590,8 +605,8 @@ def profile(log: Log, fit: Fit, name: str) -> Profile:
             lo, a = a, b
             b = lo + g * (hi - lo)
     best = max(seen, key=seen.get)
-    problem = Problem(log, lay, fit.model, use)
-    n = 3 * (lay.n_poses - 1) + int(problem.r_sel.sum()) + int(problem.b_sel.sum())
+    n = (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
+         + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
     return Profile(effect=name, value=float(best), gain=float(seen[best] - value(0.0)), n_data=n,
                    grid=sorted(seen.items()))
 
@@ -629,9 +644,7 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     latest fit and refit with it set at its maximum."""
     progress = progress or Progress()
     start = start or start_model(log)
-    unknown = [e for e in effects if e not in EFFECTS]
-    if unknown:
-        raise LogError(f"--effect {', '.join(unknown)}: for continuous commands only {', '.join(EFFECTS)} are available")
+    check_effects(effects)
     out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects)
     profiles = []
     for i, name in enumerate(effects):

@@ -22,7 +22,7 @@ import factors
 from . import continuous as CT
 from .diagnose import Candidate, Diagnosis, channel_report, structures, verdict
 from .effects import REGISTRY
-from .log import Log, wrap
+from .log import Log
 from .methods.base import Fit
 from .model import Model
 from .residuals import Channel
@@ -58,28 +58,23 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     out = {}
     for k, name in enumerate(("forward", "lateral", "turn")):
         out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov)
-    knot = lay.obs_knot
-    pose = P[knot]
-    lm = log.landmark_xy[log.landmark_index]
-    rel = lm - pose[:, :2]
-    dist = np.hypot(rel[:, 0], rel[:, 1])
-    bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - pose[:, 2])
-    reading = log.obs_reading - CT.predicted_reading(model, dist, bearing)
-    bres = wrap(log.obs_bearing - bearing)
+    pose = P[lay.obs_knot]
+    res = CT.sighting_residuals(log, pose, model)
+    dist, bearing = res["distance"], res["bearing"]
     vo = v[np.minimum(log.obs_step, log.steps - 1)]
     ot = log.obs_t - log.t[0]
     scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
             "turn_rate": vo[:, 2], "distance": dist, "image_angle": bearing, "bearing": bearing,
             "landmark": log.obs_landmark.astype(float)}
-    for name, raw, sigma, sel in (("reading", reading, problem.reading_sigma, problem.r_sel),
-                                  ("bearing", bres, problem.bearing_sigma, problem.b_sel)):
+    for name, raw, sigma, sel in (("reading", res["reading"], problem.reading_sigma, problem.r_sel),
+                                  ("bearing", res["bearing_residual"], problem.bearing_sigma, problem.b_sel)):
         keep = sel & np.isfinite(raw)
         out[name] = Channel(name, raw[keep] / sigma, raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
     return out
 
 
 def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagnosis:
-    """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and the lag candidate."""
+    """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate effects."""
     t0 = time.perf_counter()
     if progress is not None:
         progress.stage("refit model", None)

@@ -219,8 +219,8 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
     the information form the backward filter gives) rather than at the mean of alpha * delta:
     that mean does not exist where delta is improper, which the backward filter's infinite start
     makes it on the last steps of every log, and where it is merely vague, linearising there
-    sends the displacement far off (hundreds of rad per step seen). Where delta is sharp the two
-    points coincide. ``ed`` and ``Ld`` are linearised at the forward means, so s' keeps their
+    sends the displacement far off (hundreds of rad per step seen). Where alpha and delta are sharp
+    next to f_A the two points coincide. ``ed`` and ``Ld`` are linearised at the forward means, so s' keeps their
     heading branch.
     """
     n = u_prev.shape[0]

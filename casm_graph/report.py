@@ -234,10 +234,9 @@ def group_panels(diag):
     axes[0].axhline(0, color="k", lw=0.5)
     axes[0].set(xlabel="landmark", ylabel="mean residual (sigmas)", title="per landmark")
     axes[0].legend(fontsize=8)
-    for k, ch in enumerate(("forward", "lateral", "turn")):
+    actions = "action" in diag.residuals["forward"].covariates       # continuous commands have none
+    for k, ch in enumerate(("forward", "lateral", "turn") if actions else ()):
         d = diag.residuals[ch]
-        if "action" not in d.covariates:          # continuous commands: no actions
-            continue
         a = d.covariates["action"]
         ids = np.unique(a)
         m = [d.residual[a == i].mean() * np.sqrt((a == i).sum()) for i in ids]
@@ -245,7 +244,7 @@ def group_panels(diag):
         axes[1].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids], fontsize=6)
     axes[1].axhline(0, color="k", lw=0.5)
     axes[1].set(xlabel="action", ylabel="mean x sqrt(n) (z-score)", title="per action")
-    if axes[1].get_lines()[:-1]:
+    if actions:
         axes[1].legend(fontsize=8)
     else:
         axes[1].set_title("per action (continuous commands: no actions)")

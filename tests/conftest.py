@@ -4,6 +4,7 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")    # two test workers (and diagnose's pools) share two cores: no BLAS threads
 
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from casm_graph.simulate import SimConfig, simulate, write  # noqa: E402
@@ -17,7 +18,6 @@ def largest_early_drop(ll) -> tuple[float, float]:
     "Rises monotonically until approximation noise" (the EKFS-EM paper) means the first is small
     next to the second.
     """
-    import numpy as np
     ll = np.asarray(ll, float)
     gain = ll.max() - ll[0]
     i95 = int(np.argmax(ll >= ll[0] + 0.95 * gain))
