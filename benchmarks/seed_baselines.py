@@ -37,8 +37,8 @@ def scasm_trials(n: int, minutes: float = 2.5) -> dict:
     return {k: np.array(v) for k, v in rows.items()} | {"seconds": {k: np.mean(v) for k, v in secs.items()}}
 
 
-def mcl_seed(seed: int, minutes: float = 10.0) -> dict:
-    cfg = FloorConfig(seed=seed, minutes=minutes)
+def mcl_seed(seed: int, minutes: float = 10.0, detect_prob: float | None = None) -> dict:
+    cfg = FloorConfig(seed=seed, minutes=minutes, **({} if detect_prob is None else {"detect_prob": detect_prob}))
     log, truth = simfloor(cfg)
     K_true = np.array(truth["motion_model"]["region_k"])
     drive = mcl.drive_of(log)
@@ -84,6 +84,7 @@ def main():
     ap.add_argument("--scasm-trials", type=int, default=10)
     ap.add_argument("--mcl-seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4])
     ap.add_argument("--mcl-minutes", type=float, default=10.0)
+    ap.add_argument("--detect-prob", type=float, default=None, help="floor: chance each landmark in view is seen per step")
     a = ap.parse_args()
     if a.scasm_trials:
         r = scasm_trials(a.scasm_trials)
@@ -98,7 +99,7 @@ def main():
         print(f"graph better than scasm: action on {np.sum(r['graph'][:, 0] <= r['scasm'][:, 0])}/{len(r['scasm'])} trials, "
               f"sensor on {np.sum(r['graph'][:, 1] <= r['scasm'][:, 1])}/{len(r['scasm'])}")
     if a.mcl_seeds:
-        res = [mcl_seed(s, a.mcl_minutes) for s in a.mcl_seeds]
+        res = [mcl_seed(s, a.mcl_minutes, a.detect_prob) for s in a.mcl_seeds]
         modes = ["default", "optimal static", "global dynamic", "regional dynamic"]
         print("\n| MCL | position RMS m | heading RMS rad | range error % | angle error % |")
         print("|---|---|---|---|---|")

@@ -221,10 +221,11 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
     makes it on the last steps of every log, and where it is merely vague, linearising there
     sends the displacement far off (hundreds of rad per step seen). Where alpha and delta are sharp
     next to f_A the two points coincide. ``ed`` and ``Ld`` are linearised at the forward means, so s' keeps their
-    heading branch.
+    heading branch. Also returns the posterior variance of each component of d (for the action-noise M-step).
     """
     n = u_prev.shape[0]
     out = np.empty((n, 3))
+    var = np.empty((n, 3))
     SA_inv = np.diag(1.0 / act_sig ** 2)
     for k in range(n):
         a = mu_a[k]
@@ -235,6 +236,7 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
         Lk, ek = Ld[k + 1], ed[k + 1]
         cost = _pair_cost(z, a, Ia, Lk, ek, u_prev[k], SA_inv)
         pred = u_prev[k].copy()
+        C = np.zeros((3, 3))
         for it in range(iterations):
             d, L = _d_and_L(z)
             d[2] = _wrap(d[2])
@@ -244,13 +246,17 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
             grad = L.T @ SA_inv @ (d - u_prev[k])
             grad[:3] += Ia @ (z[:3] - a)
             grad[3:] += Lk @ z[3:] - ek
-            step = -np.linalg.solve(H, grad)
+            Hinv = np.linalg.inv(H)
+            step = -Hinv @ grad
             znew = z + step
             c = _pair_cost(znew, a, Ia, Lk, ek, u_prev[k], SA_inv)
             if it > 0 and c >= cost:
                 break
             cost = c
             pred = d + L @ step
+            C = L @ Hinv @ L.T
             z = znew
         out[k] = pred
-    return out
+        for j in range(3):
+            var[k, j] = C[j, j]
+    return out, var

@@ -1,6 +1,9 @@
 """graph, graph-em and ekfs-em on one shared 8-minute log: they agree, and each is near the paper's errors.
 
-Runs at full size in CI (about three minutes): an 8-minute log is already the reduced protocol.
+``ekfs-em`` is the paper's algorithm as written (Sigma_A fixed, zero start); ``ekfs-em-learned`` the
+same filter and M-steps with Sigma_A learned and the initialiser's start, the labelled departures the
+agreement needs. Runs at full size in CI (about six minutes): an 8-minute log is already the reduced
+protocol.
 """
 import numpy as np
 import pytest
@@ -19,7 +22,7 @@ pytestmark = pytest.mark.xdist_group("test_crosscheck")    # its module fixtures
 def shared():
     log, truth = simulate(SimConfig(minutes=8, seed=1))
     fits = {name: METHODS[name](log, paper_start(log), seed=1, **({"truth": truth} if name != "graph" else {}))
-            for name in ("graph", "graph-em", "ekfs-em")}
+            for name in ("graph", "graph-em", "ekfs-em", "ekfs-em-learned")}
     tv = np.array([truth["action_model"]["velocities"][str(a)] for a in log.action_ids])
     return log, truth, tv, fits
 
@@ -44,8 +47,8 @@ def test_graph_and_graph_em_agree(shared):
 
 
 @pytest.mark.science
-@pytest.mark.xfail(strict=False, reason="open in issue 3: on this seed EKFS-EM's vy differs from graph-em's "
-                   "by 23 mm/s RMS (the issue asks < 20); the test keeps reporting the gap")
+@pytest.mark.xfail(strict=False, reason="the paper's EKFS-EM as written: on this seed its vy differs from graph-em's "
+                   "by 23 mm/s RMS (the issue asks < 20); its fixed Sigma_A leaves ~30 mm/s errors on 8 minutes")
 def test_ekfs_em_agrees_with_the_graph_methods(shared):
     fits = shared[3]
     for other in ("graph", "graph-em"):
@@ -54,7 +57,19 @@ def test_ekfs_em_agrees_with_the_graph_methods(shared):
 
 
 @pytest.mark.science
-def test_ekfs_likelihood_rises_until_approximation_noise(shared):
-    drop, gain = largest_early_drop(shared[3]["ekfs-em"].notes["history"]["log_likelihood"])
+def test_ekfs_em_with_learned_action_noise_agrees_with_the_graph_methods(shared):
+    fits = shared[3]
+    for other in ("graph", "graph-em"):
+        d = _table_rms(fits["ekfs-em-learned"], fits[other])
+        assert np.all(d[:2] < 0.020), f"ekfs-em-learned vs {other}: {d}"
+    sig = fits["ekfs-em-learned"].model.motion_noise
+    assert np.all(sig < 0.5 * np.array([0.010, 0.010, 0.1])), sig      # Sigma_A left the paper's fixed value
+
+
+@pytest.mark.science
+@pytest.mark.parametrize("name", ["ekfs-em", "ekfs-em-learned"])
+def test_ekfs_likelihood_rises_until_approximation_noise(shared, name):
+    drop, gain = largest_early_drop(shared[3][name].notes["history"]["log_likelihood"])
     assert gain > 0 and drop < 0.05 * gain, f"largest early drop {drop} of gain {gain}"
-    assert shared[3]["ekfs-em"].converged                     # 50 iterations without a new best
+    if name == "ekfs-em":
+        assert shared[3][name].converged                     # 50 iterations without a new best

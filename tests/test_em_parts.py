@@ -82,7 +82,7 @@ def test_ekfs_smoother_with_the_true_model(true_case):
     assert 0.4 < z.std() < 1.5                                 # covariances of the right size
     _, _, ll_bad, _ = ekfs.forward(mu0, P0, u * 0.5, sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)
     assert ll > ll_bad + 100                                   # p(O | lambda) prefers the truth
-    d = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig)
+    d, _ = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig)
     vel = np.zeros_like(m.velocities)
     np.add.at(vel, act, d / log.dt[:, None])
     vel /= np.bincount(act, minlength=len(vel))[:, None]
