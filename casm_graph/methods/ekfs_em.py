@@ -12,6 +12,9 @@ unknown) lets the EKF lock onto a wrong heading on some logs, so pi is centred o
 of the log-only global initialiser (:mod:`casm_graph.initialise`) with a wide ``START_STD``; the
 table and the sensor model still start from nothing, as in the paper, and pi is re-estimated
 every iteration (its M-step is the smoothed first pose).
+
+``ekfs-em-learned`` (:func:`fit_learned`) is the same algorithm with Sigma_A learned and the
+initialiser's start: the variant the 8-minute cross-check compares with the graph methods.
 """
 from __future__ import annotations
 
@@ -28,8 +31,8 @@ from .base import Fit, Progress, register
 OUTLIER_M2 = 13.8          # chi-square, 2 dof, 0.999: an innovation this unlikely is pruned
 PATIENCE = 50
 MAX_ITERATIONS = 1500
-START_STD = (0.5, 0.5, 0.5)
-MIN_ACTION_SIGMA = 1e-4         # floor of a learned Sigma_A's std per axis (m, m, rad per step)     # prior std of the first pose around the log-only initialiser's guess
+START_STD = (0.5, 0.5, 0.5)     # prior std of the first pose around the log-only initialiser's guess
+MIN_ACTION_SIGMA = 1e-4         # floor of a learned Sigma_A's std per axis (m, m, rad per step)
 
 
 def _observations(log: Log):
