@@ -246,15 +246,14 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
             grad = L.T @ SA_inv @ (d - u_prev[k])
             grad[:3] += Ia @ (z[:3] - a)
             grad[3:] += Lk @ z[3:] - ek
-            Hinv = np.linalg.inv(H)
-            step = -Hinv @ grad
+            step = -np.linalg.solve(H, grad)
             znew = z + step
             c = _pair_cost(znew, a, Ia, Lk, ek, u_prev[k], SA_inv)
             if it > 0 and c >= cost:
                 break
             cost = c
             pred = d + L @ step
-            C = L @ Hinv @ L.T
+            C = L @ np.linalg.solve(H, np.ascontiguousarray(L.T))
             z = znew
         out[k] = pred
         for j in range(3):

@@ -15,10 +15,10 @@ from casm_graph.simulate import SimConfig, simulate
 
 from .conftest import largest_early_drop
 
-pytestmark = pytest.mark.xdist_group("test_crosscheck")    # its module fixtures are costly: one worker
+pytestmark = pytest.mark.xdist_group("test_crosscheck")    # its fixture is costly: one worker
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")     # a module fixture is rebuilt when xdist interleaves other modules' tests
 def shared():
     log, truth = simulate(SimConfig(minutes=8, seed=1))
     fits = {name: METHODS[name](log, paper_start(log), seed=1, **({"truth": truth} if name != "graph" else {}))
