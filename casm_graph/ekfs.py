@@ -210,7 +210,7 @@ def _pair_cost(z, a, Ia, Ld, ed, u, SA_inv):
 
 
 @njit(cache=True)
-def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
+def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True):
     """E[d(s_k, s_{k+1})] per step under the pairwise posterior alpha_k(s_k) delta_{k+1}(s_{k+1}) f_A(d) (eq. 6).
 
     f_A has the previous iteration's per-step mean ``u_prev[k]`` and covariance diag(act_sig^2).
@@ -221,11 +221,12 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
     makes it on the last steps of every log, and where it is merely vague, linearising there
     sends the displacement far off (hundreds of rad per step seen). Where alpha and delta are sharp
     next to f_A the two points coincide. ``ed`` and ``Ld`` are linearised at the forward means, so s' keeps their
-    heading branch. Also returns the posterior variance of each component of d (for the action-noise M-step).
+    heading branch. Also returns the posterior variance of each component of d (for the action-noise M-step),
+    or None when ``variance`` is False (the paper's fixed Sigma_A never uses it).
     """
     n = u_prev.shape[0]
     out = np.empty((n, 3))
-    var = np.empty((n, 3))
+    var = np.zeros((n, 3)) if variance else None
     SA_inv = np.diag(1.0 / act_sig ** 2)
     for k in range(n):
         a = mu_a[k]
@@ -236,7 +237,7 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
         Lk, ek = Ld[k + 1], ed[k + 1]
         cost = _pair_cost(z, a, Ia, Lk, ek, u_prev[k], SA_inv)
         pred = u_prev[k].copy()
-        C = np.zeros((3, 3))
+        HL = None
         for it in range(iterations):
             d, L = _d_and_L(z)
             d[2] = _wrap(d[2])
@@ -253,9 +254,10 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5):
                 break
             cost = c
             pred = d + L @ step
-            C = L @ np.linalg.solve(H, np.ascontiguousarray(L.T))
+            HL = (H, L)
             z = znew
         out[k] = pred
-        for j in range(3):
-            var[k, j] = C[j, j]
+        if variance and HL is not None:
+            H, L = HL
+            var[k] = np.diag(L @ np.linalg.solve(H, np.ascontiguousarray(L.T)))
     return out, var

@@ -54,7 +54,7 @@ def velocity_errors(model: Model, truth: dict | None) -> np.ndarray | None:
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         max_iterations: int = MAX_ITERATIONS, patience: int = PATIENCE, truth: dict | None = None,
         start_pose: tuple | None = None, learn_action_noise: bool = False, from_initialiser: bool = False,
-        overrelax: float = 1.0) -> Fit:
+        overrelax: float = 1.0, name: str = "ekfs-em") -> Fit:
     """Calibrate ``log`` with EKFS-EM from the paper's start; ``truth`` only records errors per iteration
     (table RMS, and the forward filter's heading RMS when the log has a trajectory).
 
@@ -62,7 +62,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     Sigma_A (diagonal, shared by the actions) to the expected squared deviation of each step's
     displacement from its action's new mean under the pairwise posterior, as EM would.
     ``from_initialiser`` departs from the paper's zero-velocity start: the table and the polynomial
-    start where the graph methods start, from the log-only initialiser.
+    start where the graph methods start, from the log-only initialiser. ``name`` is the method recorded in
+    the model's fit section.
     """
     progress = progress or Progress()
     t0 = time.perf_counter()
@@ -120,7 +121,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         mu_g, P_g = ekfs.smooth(mu_a, P_a, Lb, eb)
         if need_poses:
             best = (best[0], best[1], best[2], (mu_g, P_g))
-        d, d_var = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig)
+        d, d_var = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig, variance=learn_action_noise)
         new = np.zeros_like(vel)
         np.add.at(new, act, d / dt[:, None])
         vel = np.where(counts[:, None] > 0, new / np.maximum(counts, 1)[:, None], vel)
@@ -151,7 +152,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     d = d[~np.isnan(log.obs_reading)]
     pose_std = np.sqrt(np.stack([P_g[:, 0, 0], P_g[:, 1, 1], P_g[:, 2, 2]], axis=1))
     model = model.with_(distance_range=(float(d.min()), float(d.max())),
-                        fit={"method": "ekfs-em", "iterations": it + 1, "best_iteration": best_it + 1,
+                        fit={"method": name, "iterations": it + 1, "best_iteration": best_it + 1,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": float(ll),
                              "converged": bool(it - best_it >= patience), "outliers_pruned": int((~use).sum())})
     ll_hist = history["log_likelihood"]
@@ -174,7 +175,5 @@ def fit_learned(log: Log, start: Model, seed: int = 0, progress: Progress | None
     motion noise, so its smoother follows the sightings step by step; the zero start lets one action
     settle on a turn-rate alias on some 8-minute logs. This variant is what the cross-check compares.
     """
-    f = fit(log, start, seed=seed, progress=progress, max_iterations=max_iterations, learn_action_noise=True,
-            from_initialiser=True, overrelax=LEARNED_OVERRELAX, **kw)
-    f.model.fit["method"] = "ekfs-em-learned"
-    return f
+    return fit(log, start, seed=seed, progress=progress, max_iterations=max_iterations, learn_action_noise=True,
+               from_initialiser=True, overrelax=LEARNED_OVERRELAX, name="ekfs-em-learned", **kw)
