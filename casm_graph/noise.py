@@ -12,11 +12,24 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 
+def _factor(H):
+    try:        # H is symmetric positive definite: no pivoting keeps the fill-reducing order (~20x less fill)
+        return splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError:
+        return splu(H, permc_spec="MMD_AT_PLUS_A")
+
+
+def leverages(A: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
+    """Exact diagonal of the hat matrix A (A^T A)^-1 A^T at ``rows`` of the whitened Jacobian ``A``."""
+    lu = _factor((A.T @ A).tocsc())
+    U = A[rows].T.toarray()
+    return np.einsum("ij,ij->j", U, lu.solve(U))
+
+
 def hat_traces(A: sp.csr_matrix, groups: dict[str, np.ndarray], probes: int = 24,
                seed: int = 0) -> dict[str, float]:
     """tr(P_gg) for each row group of the whitened Jacobian ``A``, by Hutchinson's estimator."""
-    H = (A.T @ A).tocsc()
-    lu = splu(H, permc_spec="MMD_AT_PLUS_A")
+    lu = _factor((A.T @ A).tocsc())
     rng = np.random.default_rng(seed)
     out = {}
     for name, rows in groups.items():

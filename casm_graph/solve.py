@@ -70,6 +70,7 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
     cost = problem.cost(st)
     hist.cost.append(cost)
     direct = hasattr(problem, "solve_damped")
+    damping = {}                # lam moves by factors of ten: each level's damping graph is built once
     for _ in range(max_iterations):
         if direct:
             neq = problem.normal_equations(st, poses_only=freeze_parameters)
@@ -80,7 +81,9 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
                 trial = problem.retract(st, problem.solve_damped(neq, lam))
             else:
                 system = lin.clone()
-                system.push_back(_damping(keys_dims, lam))
+                if lam not in damping:
+                    damping[lam] = _damping(keys_dims, lam)
+                system.push_back(damping[lam])
                 try:
                     trial = problem.retract(st, system.optimize())
                 except RuntimeError:        # GTSAM: indeterminate at this damping; damp more, as for a failed step

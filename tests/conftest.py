@@ -11,6 +11,24 @@ from casm_graph.simulate import SimConfig, simulate, write  # noqa: E402
 
 FULL = os.environ.get("CASM_FULL") == "1"
 
+# Modules whose module- or session-scoped fixtures are costly (minutes): all their tests on one xdist
+# worker, so each fixture is built once. pytest-xdist's own xdist_group mark does nothing under pytest 9
+# (it rewrites ``item._nodeid``, which pytest 9 no longer reads): both workers built the cross-check's
+# 700-second fixture. Every other test is its own unit, as with --dist load.
+ONE_WORKER = {f"tests/{m}.py" for m in ("test_crosscheck", "test_diagnose", "test_effects", "test_em_parts",
+                                         "test_mrclam", "test_uncertainty")}
+
+
+def pytest_xdist_make_scheduler(config, log):
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleGroups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return module if module in ONE_WORKER else nodeid
+
+    return ModuleGroups(config, log)
+
 
 def largest_early_drop(ll) -> tuple[float, float]:
     """(largest fall, total gain) of a likelihood trace up to where it first reaches 95 % of its gain.

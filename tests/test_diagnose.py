@@ -12,7 +12,6 @@ from casm_graph import diagnose as D
 from casm_graph.effects import REGISTRY
 from casm_graph.residuals import Channel
 
-pytestmark = pytest.mark.xdist_group("test_diagnose")    # its module fixtures are costly: one worker
 
 
 def cli(*args):

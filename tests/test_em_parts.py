@@ -11,7 +11,6 @@ from casm_graph.methods.graph_em import expected_displacement, gaussian_moments
 from casm_graph.model import paper_start
 from casm_graph.simulate import SimConfig, simulate
 
-pytestmark = pytest.mark.xdist_group("test_em_parts")    # its module fixtures are costly: one worker
 
 
 @pytest.fixture(scope="module")

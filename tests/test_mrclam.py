@@ -17,7 +17,6 @@ from casm_graph.diagnose import BIC_SUPPORT
 from casm_graph.log import load
 from casm_graph.model import Model
 
-pytestmark = pytest.mark.xdist_group("test_mrclam")    # its module fixtures are costly: one worker
 
 DATA = mrclam.find_data()
 needs_data = pytest.mark.skipif(not (DATA / "Robot1_Odometry.dat").is_file(), reason=f"no MRCLAM data at {DATA}")

@@ -28,7 +28,6 @@ from casm_graph.uncertainty_run import compute
 
 from .conftest import FULL
 
-pytestmark = pytest.mark.xdist_group("test_uncertainty")    # its module fixtures are costly: one worker
 
 Z90 = 1.6448536269514722
 
