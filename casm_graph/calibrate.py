@@ -69,9 +69,31 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
                notes={**fit.notes, "base_log_likelihood": fit.log_likelihood})
 
 
+def parse_regions(text: str | None, log: Log):
+    """The regional_motion_noise grid from "NX,NY" or "NX,NY,X0,Y0,X1,Y1" (None: the default around the landmarks)."""
+    from .effects.regional_motion_noise import Regions
+    if text is None:
+        return None
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) not in (2, 6) or v[0] < 1 or v[1] < 1 or v[0] != int(v[0]) or v[1] != int(v[1]) \
+            or (len(v) == 6 and not (v[4] > v[2] and v[5] > v[3])):
+        raise LogError(f"--regions {text!r}: give NX,NY or NX,NY,X0,Y0,X1,Y1 (whole counts >= 1, X1 > X0, Y1 > Y0)")
+    grid = (int(v[0]), int(v[1]))
+    if len(v) == 2:
+        return Regions.around_landmarks(log, grid)
+    return Regions(tuple(v[2:]), grid)
+
+
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
-        effects: tuple[str, ...] = (), seed: int = 0, progress: Progress | None = None) -> tuple[Log, Fit]:
-    """Calibrate the bundle at ``log_dir`` and write the run to ``out``; bad input raises LogError first."""
+        effects: tuple[str, ...] = (), seed: int = 0, progress: Progress | None = None,
+        regions: str | None = None) -> tuple[Log, Fit]:
+    """Calibrate the bundle at ``log_dir`` and write the run to ``out``; bad input raises LogError first.
+
+    ``regions`` ("NX,NY" or "NX,NY,X0,Y0,X1,Y1") is the grid of the regional_motion_noise effect
+    (default 3,2 around the landmarks)."""
     if method in SCASM_METHODS:               # 1-D logs: their own model kinds and report
         from . import scasm_run
         return scasm_run.run(log_dir, out, method, progress=progress)
@@ -92,9 +114,11 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
             raise LogError(f"--method {method}: continuous commands (commands.csv 'v,w') are calibrated "
                            f"by the graph method only")
         continuous.check_effects(cls.name for cls in classes)
+        grid = parse_regions(regions, log)
         start = continuous.start_model(log, sensor_degree)
         if classes:
-            fit = continuous.fit_with_effects(log, start, [cls.name for cls in classes], seed=seed, progress=progress)
+            fit = continuous.fit_with_effects(log, start, [cls.name for cls in classes], seed=seed, progress=progress,
+                                              regions=grid)
         else:
             fit = continuous.fit(log, start, seed=seed, progress=progress)
         if progress is not None:

@@ -92,7 +92,7 @@ def _calibrate(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             log, fit = run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
-                           effects=tuple(args.effect), seed=args.seed, progress=bar)
+                           effects=tuple(args.effect), seed=args.seed, progress=bar, regions=args.regions)
     finally:
         bar.close()
     for msg in dict.fromkeys(str(w.message) for w in caught):
@@ -104,6 +104,13 @@ def _calibrate(args) -> int:
     print(f"calibrated {args.log} with {args.method} in {m.fit['seconds']:.1f} s "
           f"({m.fit['iterations']} iterations, converged={m.fit['converged']})")
     print(f"  reading sigma {m.reading_sigma:.3f}, bearing sigma {m.bearing_sigma:.3f} rad")
+    if "regional_motion_noise" in m.effects:
+        from .effects.regional_motion_noise import determined
+        e = m.effects["regional_motion_noise"]
+        for g, (kr, kt, kd, ok) in enumerate(zip(e["k_r"], e["k_t"], e["k_d"], determined(e))):
+            n = e.get("segments", [0] * len(e["k_r"]))[g]
+            print(f"  region {g}: k_r {kr:.2g} m, k_t {kt:.2g} rad, k_d {kd:.2g} rad^2/m, {n} segments"
+                  + ("" if ok else " (undetermined: the start's values)"))
     print(f"  wrote {args.out}/model.json, trajectory.csv, report.html")
     return 0
 
@@ -190,6 +197,8 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--method", default="graph", choices=sorted(METHODS) + ["scasm", "scasm-graph"])
     c.add_argument("--effect", action="append", default=[], metavar="NAME")
     c.add_argument("--sensor-degree", type=int, default=3)
+    c.add_argument("--regions", default=None, metavar="NX,NY[,X0,Y0,X1,Y1]",
+                   help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=_calibrate)

@@ -30,6 +30,7 @@ import factors
 from . import graph as G
 from . import noise
 from .command_model import CommandModel, for_commands
+from .effects import regional_motion_noise as RMN
 from .initialise import locate
 from .log import Log, LogError, wrap
 from .methods.base import Fit, Progress
@@ -47,6 +48,8 @@ INIT_KNOT_DT = 0.5
 INIT_WINDOW = 5.0
 COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
 FULL_KNOT_DT, FULL_ROUNDS, FULL_ITERATIONS = 0.25, 2, 15
+REGIONAL_ROUNDS, REGIONAL_TOL = 40, 0.02      # EM rounds of regional_motion_noise's k's on the fine graph; stop when
+                                              # none moves by 2 % (slow where sightings say little about single steps)
 
 
 # --------------------------------------------------------------------------- the graph
@@ -100,10 +103,13 @@ def huber(e: np.ndarray, k: float = HUBER) -> np.ndarray:
 class Problem:
     """The graph of one continuous-command log under fixed noise levels, linearised in numpy.
 
-    ``use`` masks (reading, bearing) say which sightings take part (outliers set aside).
+    ``use`` masks (reading, bearing) say which sightings take part (outliers set aside). With the
+    regional_motion_noise effect each segment's forward and turn sigmas come from its region's k's,
+    the region taken at the knot ``poses`` (fixed for the problem's life, like every noise level).
     """
 
-    def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None):
+    def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None,
+                 poses: np.ndarray | None = None):
         self.log, self.lay = log, lay
         cm: CommandModel = model.command
         bv, bw = cm.basis(log.controls, log.dt)
@@ -111,6 +117,17 @@ class Problem:
         ref = float(np.median(log.dt))
         self.motion_sigma = (np.asarray(model.motion_noise, float)[None, :]
                              * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None])
+        self.seg_region = None
+        if RMN.RegionalMotionNoise.name in model.effects:
+            if poses is None:
+                raise ValueError("regional_motion_noise: the problem needs the knot poses to place its segments")
+            regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
+            self.seg_region = regions.of(np.asarray(poses)[:-1, :2])
+            v = cm.velocities(log.controls, log.dt)[lay.seg_idx]
+            self.seg_r = np.sum(np.abs(v[..., 0]) * lay.seg_dt, axis=1)
+            self.seg_turn = np.sum(np.abs(v[..., 2]) * lay.seg_dt, axis=1)
+            vr, vt = RMN.variances(k[self.seg_region], self.seg_r, self.seg_turn)
+            self.motion_sigma[:, 0], self.motion_sigma[:, 2] = np.sqrt(vr), np.sqrt(vt)
         lm = log.landmark_xy[log.landmark_index]
         r, b = ~np.isnan(log.obs_reading), ~np.isnan(log.obs_bearing)
         if use is not None:
@@ -221,14 +238,35 @@ class Problem:
 
 
 def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, poses_only: bool = False) -> Model:
-    """Every noise level re-estimated at the current optimum, degrees of freedom accounted for."""
+    """Every noise level re-estimated at the current optimum, degrees of freedom accounted for.
+
+    With regional_motion_noise, each region's (k_r, k_t, k_d) are refitted by maximum likelihood to its
+    segments' expected squared forward and turn errors, an EM step: E[eps^2] = sigma^2 (w^2 + h), w the
+    whitened residual and h the leverage of its row (the hat matrix's diagonal, exact). A region with
+    fewer than ``MIN_SEGMENTS`` segments keeps its k's and is recorded as undetermined (its count).
+    """
     A, e, groups = problem.jacobian(st, poses_only=poses_only)
+    regional = problem.seg_region is not None
     traces = noise.hat_traces(A, groups, seed=seed)
     new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) for k, rows in groups.items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
     m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
-    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
-                       bearing_sigma=model.bearing_sigma * new["bearing"])
+    model = model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
+                        bearing_sigma=model.bearing_sigma * new["bearing"])
+    if not regional:
+        return model
+    regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
+    n = len(problem.seg_region)
+    w = e[:3 * n].reshape(-1, 3)
+    h = noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]])).reshape(2, n).T
+    e2 = problem.motion_sigma[:, [0, 2]] ** 2 * (w[:, [0, 2]] ** 2 + h)
+    k_new = k.copy()
+    for g in range(regions.count):
+        sel = problem.seg_region == g
+        if sel.sum() >= RMN.MIN_SEGMENTS:
+            k_new[g] = RMN.estimate(problem.seg_r[sel], problem.seg_turn[sel], e2[sel, 0], e2[sel, 1], k[g])
+    counts = np.bincount(problem.seg_region, minlength=regions.count)
+    return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k_new, counts)})
 
 
 def lens_k(model: Model) -> float:
@@ -430,7 +468,7 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
     its, h = 0, None
     problem = st = None
     for r in range(rounds):
-        problem = Problem(log, lay, model, use)
+        problem = Problem(log, lay, model, use, poses)
 
         def tick(c):
             trace.append(c)
@@ -465,10 +503,23 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                                                COARSE_ITERATIONS, seed, "coarse", trace, stages, progress)
     poses = fill_in(log, model, coarse.knots, kp)
     full = layout(log, FULL_KNOT_DT)
+    it2 = 0
+    if RMN.RegionalMotionNoise.name in model.effects:
+        progress.stage("regional noise", REGIONAL_ROUNDS)
+        for r in range(REGIONAL_ROUNDS):
+            before = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
+            model, kp, _, _, its, _ = optimise_rounds(log, full, model, poses[full.knots], 1, FULL_ITERATIONS,
+                                                      seed + 200 + r, "regional", trace, stages, progress)
+            it2 += its
+            poses = fill_in(log, model, full.knots, kp)
+            after = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
+            if np.max(np.abs(np.log(after / before))) < REGIONAL_TOL:
+                break
     progress.stage("full graph", FULL_ROUNDS)
-    model, kp, problem, st, it2, converged = optimise_rounds(
+    model, kp, problem, st, its, converged = optimise_rounds(
         log, full, model, poses[full.knots], FULL_ROUNDS, FULL_ITERATIONS, seed + 100, "full", trace, stages,
         progress, last_noise=False)
+    it2 += its
     poses = fill_in(log, model, full.knots, kp)
     pose_std = np.full_like(poses, np.nan)
     if marginals:
@@ -508,7 +559,8 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
 
 
 # --------------------------------------------------------------------------- effects for continuous commands
-EFFECTS = ("actuator_lag", "lens_distortion")     # catalog effects a continuous-command log can take
+EFFECTS = ("actuator_lag", "lens_distortion")     # catalog effects profiled and diagnosed on continuous-command logs
+NOISE_EFFECTS = (RMN.RegionalMotionNoise.name,)   # set by the noise step of every round, added on request only
 PROFILE_GRID = {"actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),        # tau, s
                 "lens_distortion": (-0.4, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.4)}   # k, per rad^2
 PROFILE_BOUNDS = {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)}
@@ -518,10 +570,20 @@ PROFILE_ITERATIONS = 8
 
 def check_effects(names) -> None:
     """LogError unless every name is an effect a continuous-command log can take."""
-    other = sorted(set(names) - set(EFFECTS))
+    other = sorted(set(names) - set(EFFECTS) - set(NOISE_EFFECTS))
     if other:
-        raise LogError(f"--effect {', '.join(other)}: for continuous commands only {' and '.join(EFFECTS)} "
-                       f"are available")
+        raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
+                       f"{', '.join(EFFECTS + NOISE_EFFECTS[:-1])} and {NOISE_EFFECTS[-1]} are available")
+
+
+def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Model) -> Model:
+    """``model`` with regional_motion_noise on ``regions``, every region starting from ``fitted``'s
+    forward and turn noise per median step (the turn variance shared half and half by k_t and k_d)."""
+    v = np.abs(fitted.command.velocities(log.controls, log.dt)) * log.dt[:, None]
+    r, turn = max(float(v[:, 0].mean()), 1e-6), max(float(v[:, 2].mean()), 1e-6)
+    sf, _, st = np.asarray(fitted.motion_noise, float)
+    k = np.tile([sf ** 2 / r, 0.5 * st ** 2 / turn, 0.5 * st ** 2 / r], (regions.count, 1))
+    return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k)})
 
 
 def with_effect(model: Model, name: str, value: float) -> Model:
@@ -572,11 +634,11 @@ def profile(log: Log, fit: Fit, name: str) -> Profile:
         x = round(float(x), 5)
         if x not in seen:
             m = with_effect(fit.model, name, x)
-            problem = Problem(log, lay, m, use)
+            problem = Problem(log, lay, m, use, start)
             try:
                 st, _ = least_squares(problem, state(start, m), max_iterations=PROFILE_ITERATIONS)
                 m = _ml_noise(problem, st, with_state(m, st))
-                problem = Problem(log, lay, m, use)
+                problem = Problem(log, lay, m, use, st.poses)
                 st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
                 seen[x] = _concentrated_log_likelihood(problem, st)
             except RuntimeError:            # GTSAM: the graph is indeterminate at this setting, no maximum here
@@ -639,19 +701,30 @@ def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
 
 
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
-                     progress: Progress | None = None, marginals: bool = True) -> Fit:
-    """``fit`` with continuous-log effects: fit without them, then for each in turn profile it on the
-    latest fit and refit with it set at its maximum."""
+                     progress: Progress | None = None, marginals: bool = True,
+                     regions: RMN.Regions | None = None) -> Fit:
+    """``fit`` with continuous-log effects: fit without them, then for each profiled effect in turn
+    profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
+    profiled: its regions (``regions``, default a 3 x 2 grid around the landmarks) start from the
+    latest fit's noise levels and the noise step of every round of one more fit sets their k's."""
     progress = progress or Progress()
     start = start or start_model(log)
     check_effects(effects)
+    profiled = [n for n in effects if n in EFFECTS]
+    noisy = [n for n in effects if n in NOISE_EFFECTS]
     out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects)
     profiles = []
-    for i, name in enumerate(effects):
+    for i, name in enumerate(profiled):
         progress.stage(f"{name} profile", None)
         prof = profile(log, out, name)
         profiles.append(prof)
         start = with_effect(start, name, prof.value)
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and i == len(effects) - 1)
+        out = fit(log, start, seed=seed, progress=progress,
+                  marginals=marginals and i == len(profiled) - 1 and not noisy)
+    if noisy:
+        before = out.log_likelihood
+        start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals)
+        out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
     out.notes["profiles"] = profiles
     return out

@@ -80,7 +80,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
         progress.stage("refit model", None)
     lay = CT.layout(log, CT.FULL_KNOT_DT)
     use = CT.gate(log, poses[log.obs_step], model)
-    problem = CT.Problem(log, lay, model, use)
+    problem = CT.Problem(log, lay, model, use, poses[lay.knots])
     st, _ = least_squares(problem, CT.state(poses[lay.knots], model), max_iterations=SETTLE_ITERATIONS)
     model = CT.with_state(model, st)
     full = CT.fill_in(log, model, lay.knots, st.poses)
@@ -88,7 +88,8 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
     chs = channels(log, problem, st, model)
     rep = channel_report(chs)
     struct = structures(rep)
-    skipped = {n: "not available for continuous commands" for n in sorted(REGISTRY) if n not in CT.EFFECTS}
+    skipped = {n: ("added on request (calibrate --effect), not diagnosed" if n in CT.NOISE_EFFECTS else
+                   "not available for continuous commands") for n in sorted(REGISTRY) if n not in CT.EFFECTS}
     cands = []
     todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0]
     if progress is not None and todo:

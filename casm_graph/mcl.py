@@ -18,11 +18,11 @@ import gtsam
 import numpy as np
 from scipy.optimize import minimize
 
+from .effects.regional_motion_noise import estimate, variances
 from .log import Log, LogError, wrap
 from .simulate_floor import region_of, step
 
 DEFAULT_K = (0.05, 0.2, 0.05)       # generic high-variance parameters (the paper's "default static")
-VAR_FLOOR = 1e-8
 
 
 # ----------------------------------------------------------------------------- the log as MCL sees it
@@ -56,14 +56,6 @@ def drive_of(log: Log, start: np.ndarray | None = None) -> Drive:
 
 
 # ----------------------------------------------------------------------------- the motion model
-def variances(k: np.ndarray, r: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Variance of the translation and of the rotation for reported (r, theta); ``k`` (..., 3)."""
-    k = np.asarray(k, float)
-    vr = k[..., 0] * np.abs(r) + VAR_FLOOR
-    vt = k[..., 1] * np.abs(theta) + k[..., 2] * np.abs(r) + VAR_FLOOR
-    return vr, vt
-
-
 def neg_log_lik(k, r_hat, t_hat, r, t) -> float:
     """-log p(corrected | reported, k) of a set of motion pairs (paper section 3.2)."""
     vr, vt = variances(k, r_hat, t_hat)
@@ -80,16 +72,7 @@ def fit_k(r_hat, t_hat, r, t, start=DEFAULT_K) -> np.ndarray:
 
 def fit_k_expected(r_hat, t_hat, e_r2, e_t2, start=DEFAULT_K) -> np.ndarray:
     """The same ML with the squared errors replaced by their posterior expectations (the EM M-step)."""
-    keep = np.abs(r_hat) > 1e-9
-    kr = float(np.mean(e_r2[keep] / np.abs(r_hat[keep]))) if keep.any() else start[0]
-
-    def f(z):
-        vt = np.exp(z[0]) * np.abs(t_hat) + np.exp(z[1]) * np.abs(r_hat) + VAR_FLOOR
-        return float(0.5 * np.sum(np.log(vt) + e_t2 / vt))
-
-    res = minimize(f, np.log(np.maximum(start[1:], 1e-9)), method="Nelder-Mead",
-                   options={"xatol": 1e-3, "fatol": 1e-3, "maxiter": 600})
-    return np.array([kr, *np.exp(res.x)])
+    return estimate(r_hat, t_hat, e_r2, e_t2, start)
 
 
 # ----------------------------------------------------------------------------- MCL

@@ -106,6 +106,10 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     from .effects import get as get_effect
     own = {cls.name: cls for cls in cfg.extra_effects}
     effects = [own[name]() if name in own else get_effect(name)() for name in cfg.effects]   # unknown names fail first
+    for e in effects:
+        if e.continuous_only:
+            raise LogError(f"--effect {e.name}: needs continuous (v, w) commands; the floor protocol "
+                           f"(--protocol floor) has it built in (rough regions)")
     if cfg.minutes <= 0:
         raise LogError(f"--minutes must be positive (got {cfg.minutes:g})")
     rng = np.random.default_rng(cfg.seed)

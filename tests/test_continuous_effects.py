@@ -86,7 +86,7 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
 def test_other_effects_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
     d, _ = lag_floor
     assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "battery_fade", "--quiet"]) == 2
-    assert "only actuator_lag and lens_distortion" in capsys.readouterr().err
+    assert "only actuator_lag, lens_distortion and regional_motion_noise" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
 
 

@@ -1,13 +1,21 @@
-"""MCL with dynamic motion models (Milstein & Wang) and the graph's joint per-region estimate.
+"""MCL with dynamic motion models (Milstein & Wang) and the graph's joint per-region estimates.
 
-The science check runs one 6-minute floor in CI and five 10-minute floors with CASM_FULL=1;
-benchmarks/seed_baselines.py prints the full tables.
+Two graph estimates: ``mcl.graph_em`` (EM on a GTSAM graph of built-in factors, known start and
+sensor) and the catalog effect ``regional_motion_noise`` on the continuous-command calibration
+(sensor curve, command map and trajectory learned with it, through the CLI). Regions are judged
+where the true path spent at least ``MIN_SEGMENTS`` steps; elsewhere no method has data and every
+estimate is its start. The science check runs one 6-minute floor in CI and five 10-minute floors with
+CASM_FULL=1; benchmarks/seed_baselines.py prints the full tables.
 """
+import json
+
 import numpy as np
 import pytest
 
 from casm_graph import mcl
 from casm_graph.cli import main
+from casm_graph.effects.regional_motion_noise import MIN_SEGMENTS, from_entry
+from casm_graph.log import write
 from casm_graph.simulate_floor import FloorConfig, region_of, simulate
 
 from .conftest import FULL
@@ -39,15 +47,22 @@ def test_floor_noise_follows_the_region():
     assert np.mean(z[rough]) / np.mean(z[~rough]) == pytest.approx(cfg.rough_factor, rel=0.35)
 
 
+def _map_right(K, seen, rough) -> bool:
+    """Does the regional map single out the rough regions, among the regions the path visited?"""
+    idx = np.flatnonzero(seen)
+    return [int(idx[i]) for i in mcl.rough_regions(K[seen])] == sorted(set(rough) & set(idx.tolist()))
+
+
 @pytest.mark.science
-def test_dynamic_motion_models_and_the_graph():
+def test_dynamic_motion_models_and_the_graph(tmp_path):
     seeds = range(5) if FULL else [2]
     minutes = 10 if FULL else 6
-    default_worst = map_right = graph_right = graph_closer = var_closer = 0
+    default_worst = map_right = graph_right = graph_closer = var_closer = effect_right = effect_closer = 0
     for seed in seeds:
         cfg = FloorConfig(minutes=minutes, seed=seed)
         log, truth = simulate(cfg)
         K_true = np.array(truth["motion_model"]["region_k"])
+        seen = np.bincount(region_of(log.truth[:-1, 1:3], cfg.size, cfg.grid), minlength=len(K_true)) >= MIN_SEGMENTS
         d = mcl.drive_of(log)
         runs = {"default": mcl.run_mcl(d, cfg.size, cfg.grid, "default", seed=seed)}
         k_opt = mcl.fit_k(*runs["default"].pairs[:, :4].T)
@@ -58,24 +73,72 @@ def test_dynamic_motion_models_and_the_graph():
         default_worst += all(err["default"][c] > err[m][c] for m in ("static", "global", "regional")
                              for c in ("range_error_pct", "angle_error_pct"))
         reg = runs["regional"]
-        map_right += mcl.rough_regions(reg.k_final) == sorted(cfg.rough)
+        map_right += _map_right(reg.k_final, seen, cfg.rough)
         g = mcl.graph_em(d, cfg.size, cfg.grid, reg.poses)
-        graph_right += mcl.rough_regions(g.k) == sorted(cfg.rough)
+        graph_right += _map_right(g.k, seen, cfg.rough)
         k_pairs = mcl.regional_fit(reg.pairs, len(K_true))
-        graph_closer += mcl.log_error(g.k, K_true) <= min(mcl.log_error(reg.k_final, K_true),
-                                                          mcl.log_error(k_pairs, K_true))
-        var_closer += mcl.variance_error(g.k, K_true) <= min(mcl.variance_error(reg.k_final, K_true),
-                                                             mcl.variance_error(k_pairs, K_true))
+        mcl_log = min(mcl.log_error(reg.k_final[seen], K_true[seen]), mcl.log_error(k_pairs[seen], K_true[seen]))
+        mcl_var = min(mcl.variance_error(reg.k_final[seen], K_true[seen]),
+                      mcl.variance_error(k_pairs[seen], K_true[seen]))
+        graph_closer += mcl.log_error(g.k[seen], K_true[seen]) <= mcl_log
+        var_closer += mcl.variance_error(g.k[seen], K_true[seen]) <= mcl_var
+        bundle, run = tmp_path / f"floor{seed}", tmp_path / f"run{seed}"
+        write(log, bundle)
+        assert main(["calibrate", str(bundle), "--out", str(run), "--effect", "regional_motion_noise",
+                     "--regions", f"{cfg.grid[0]},{cfg.grid[1]},0,0,{cfg.size[0]},{cfg.size[1]}", "--quiet"]) == 0
+        entry = json.loads((run / "model.json").read_text())["effects"]["regional_motion_noise"]
+        K_eff = from_entry(entry)[1]
+        effect_right += _map_right(K_eff, seen, cfg.rough)
+        effect_closer += mcl.variance_error(K_eff[seen], K_true[seen]) <= mcl_var
+        print(f"seed {seed}: motion variance error (log RMS) MCL {mcl_var:.2f}, graph_em "
+              f"{mcl.variance_error(g.k[seen], K_true[seen]):.2f}, effect {mcl.variance_error(K_eff[seen], K_true[seen]):.2f}; "
+              f"segments per region {entry['segments']}")
     n = len(seeds)
     print(f"default static worst on {default_worst}/{n}, MCL map right on {map_right}/{n}, "
-          f"graph map right on {graph_right}/{n}, graph closer to the true k's on {graph_closer}/{n} "
-          f"and to the true motion variances on {var_closer}/{n}")
+          f"graph_em map right on {graph_right}/{n}, closer to the true k's on {graph_closer}/{n} "
+          f"and to the true motion variances on {var_closer}/{n}; the regional_motion_noise effect map right on "
+          f"{effect_right}/{n}, closer to the true motion variances on {effect_closer}/{n}")
     assert default_worst == n
     assert map_right >= (3 if FULL else 1)
     # one full-size seed lets the graph trade k_d against k_t (a k near zero, same variances): n - 1 there
     assert graph_right == n and var_closer == n and graph_closer >= n - (1 if FULL else 0)
+    assert effect_right == n and effect_closer == n
 
 
 def test_cli_simulates_the_floor(tmp_path):
     assert main(["simulate", str(tmp_path / "f"), "--protocol", "floor", "--minutes", "1"]) == 0
     assert (tmp_path / "f" / "observations.csv").is_file()
+
+
+def test_regional_motion_noise_is_refused_clearly_where_it_cannot_run(short_bundle, tmp_path, capsys):
+    assert main(["calibrate", str(short_bundle[0]), "--out", str(tmp_path / "r"), "--effect",
+                 "regional_motion_noise", "--quiet"]) == 2
+    assert "continuous (v, w) commands" in capsys.readouterr().err and not (tmp_path / "r").exists()
+    assert main(["simulate", str(tmp_path / "s"), "--effect", "regional_motion_noise=1"]) == 2
+    assert "--protocol floor" in capsys.readouterr().err
+    assert main(["simulate", str(tmp_path / "f"), "--protocol", "floor", "--minutes", "1"]) == 0
+    for bad in ("3", "0,2", "3,2,0,0,-1,8", "a,b"):
+        assert main(["calibrate", str(tmp_path / "f"), "--out", str(tmp_path / "r"), "--effect",
+                     "regional_motion_noise", "--regions", bad, "--quiet"]) == 2
+        assert "--regions" in capsys.readouterr().err and not (tmp_path / "r").exists()
+
+
+def test_regional_noise_problem_weights_each_segment_by_its_region():
+    from casm_graph import continuous as CT
+    from casm_graph.effects.regional_motion_noise import Regions, entry, variances
+    log, _ = simulate(FloorConfig(minutes=1, seed=0))
+    m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=1.0))
+    k = np.array([[0.002, 0.01, 0.002]] * 6)
+    k[4] = [0.02, 0.1, 0.02]
+    regions = Regions((0.0, 0.0, 12.0, 8.0), (3, 2))
+    m = m.with_(effects={"regional_motion_noise": entry(regions, k)})
+    lay = CT.layout(log, CT.FULL_KNOT_DT)
+    knots = log.truth[lay.knots, 1:]
+    p = CT.Problem(log, lay, m, poses=knots)
+    reg = region_of(knots[:-1, :2], (12.0, 8.0), (3, 2))
+    np.testing.assert_array_equal(p.seg_region, reg)
+    r = np.array([np.sum(np.abs(log.controls[lay.seg_idx[i], 0]) * lay.seg_dt[i]) for i in range(len(reg))])
+    vr, _ = variances(k[reg], r, p.seg_turn)
+    np.testing.assert_allclose(p.motion_sigma[:, 0], np.sqrt(vr), rtol=1e-9)
+    with pytest.raises(ValueError, match="knot poses"):
+        CT.Problem(log, lay, m)

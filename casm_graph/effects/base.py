@@ -36,6 +36,7 @@ class Effect:
     explains: tuple[tuple[str, str], ...] = ()   # (channel, covariate) residual structure it accounts for
     physics: str = ""                       # one sentence for the catalog and the diagnosis
     noise_only: bool = False                # parameters set by the noise step, not least squares
+    continuous_only: bool = False           # needs continuous (v, w) commands: the action-table simulator refuses it
 
     def __init__(self, log: Log | None = None):
         self.log = log
