@@ -70,6 +70,36 @@ def residual_figure(log: Log, fit: Fit):
     return fig
 
 
+def regional_noise_figure(log: Log, fit: Fit, r_ref: float = 0.2, theta_ref: float = 0.1):
+    """The regional_motion_noise map: per region the translation and rotation sigma of a reference step
+    (``r_ref`` m, ``theta_ref`` rad) the fitted k's predict, the trajectory on top; undetermined regions grey."""
+    from .effects.regional_motion_noise import determined, from_entry, variances
+    e = fit.model.effects["regional_motion_noise"]
+    regions, k = from_entry(e)
+    vr, vt = variances(k, r_ref, theta_ref)
+    x0, y0, x1, y1 = regions.extent
+    nx, ny = regions.grid
+    ok = determined(e)
+    fig, axs = plt.subplots(1, 2, figsize=(12, 4.6))
+    for ax, v, unit, title in ((axs[0], 1000 * np.sqrt(vr), "mm", f"translation sigma of a {r_ref:g} m step"),
+                               (axs[1], 1000 * np.sqrt(vt), "mrad", f"rotation sigma of a {r_ref:g} m, {theta_ref:g} rad step")):
+        cmap = plt.get_cmap("viridis").copy()
+        cmap.set_bad("0.85")
+        im = ax.imshow(np.where(ok, v, np.nan).reshape(ny, nx), origin="lower", extent=(x0, x1, y0, y1), cmap=cmap)
+        fig.colorbar(im, ax=ax, label=unit, shrink=0.8)
+        for g in range(regions.count):
+            cx, cy = x0 + (g % nx + 0.5) * (x1 - x0) / nx, y0 + (g // nx + 0.5) * (y1 - y0) / ny
+            ax.text(cx, cy, (f"{v[g]:.0f} {unit}" if ok[g] else "undetermined")
+                    + f"\n{e.get('segments', [0] * regions.count)[g]} segments", ha="center", va="center",
+                    fontsize=8, bbox={"facecolor": "w", "alpha": 0.7, "edgecolor": "none"})
+        ax.plot(fit.poses[:, 0], fit.poses[:, 1], color="C3", lw=0.5)
+        ax.plot(log.landmark_xy[:, 0], log.landmark_xy[:, 1], "k^", ms=6)
+        ax.set(title=title, xlabel="x (m)", ylabel="y (m)", xlim=(x0, x1), ylim=(y0, y1))
+        ax.set_aspect("equal")
+    fig.tight_layout()
+    return fig
+
+
 def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None) -> None:
     """report.html of a continuous-command run; ``evaluation`` (from :mod:`groundtruth`) adds the truth checks."""
     m, f, cm = fit.model, fit.model.fit, fit.model.command
@@ -94,6 +124,8 @@ def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None) 
             "<h2>Command maps</h2>", png(maps_figure(log, fit, ref)),
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, None)),
             "<h2>Trajectory</h2>", png(trajectory_figure(log, fit, others)),
+            *(["<h2>Motion noise by region (regional_motion_noise)</h2>", png(regional_noise_figure(log, fit))]
+              if "regional_motion_noise" in m.effects else []),
             "<h2>Residuals</h2>", png(residual_figure(log, fit)),
             "<h2>Cost per iteration</h2>", png(cost_figure(fit))]
     path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph calibration</title>"

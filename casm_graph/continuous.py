@@ -12,7 +12,9 @@ The start is global, as for the action table (:mod:`casm_graph.initialise`):
    imply, by a grid search over its offset and gain (summed resultant lengths of 10 s windows);
 3. with headings fixed, positions are linear in the speed-map coefficients: least squares.
 Then a coarse graph (1 s knots) is optimised in rounds that re-estimate every noise level and set
-aside sightings more than ``GATE`` sigmas off, and a finer graph (0.25 s knots) finishes.
+aside sightings more than ``GATE`` sigmas off, its first rounds with the nominal maps and the
+polynomial held (the sightings place the poses before the maps may move), and a finer graph
+(0.25 s knots) finishes.
 """
 from __future__ import annotations
 
@@ -44,9 +46,13 @@ POLY_PRIOR_SIGMA = 1e4
 GATE = 5.0                   # whitened residual beyond which a sighting is set aside (re-decided each round)
 HUBER = 2.0                  # sightings count quadratically up to this many sigmas, linearly beyond
 MIN_SIGHTINGS = 10
+MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is numerical, not physical (a robot that never
+                             # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
 INIT_KNOT_DT = 0.5
 INIT_WINDOW = 5.0
 COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
+COARSE_HELD_ROUNDS = 3       # coarse rounds with the maps held first: freed on the initialiser's poses, MRCLAM robot 4
+                             # (fewest sightings) ran to a speed map 131 % off (log-likelihood 22,036; 42,665 this way)
 FULL_KNOT_DT, FULL_ROUNDS, FULL_ITERATIONS = 0.25, 2, 15
 REGIONAL_ROUNDS, REGIONAL_TOL = 40, 0.02      # EM rounds of regional_motion_noise's k's on the fine graph; stop when
                                               # none moves by 2 % (slow where sightings say little about single steps)
@@ -251,6 +257,7 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) for k, rows in groups.items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
     m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
+    m = np.maximum(m, MIN_MOTION_SIGMA)
     model = model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
                         bearing_sigma=model.bearing_sigma * new["bearing"])
     if not regional:
@@ -258,7 +265,7 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
     n = len(problem.seg_region)
     w = e[:3 * n].reshape(-1, 3)
-    h = noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]])).reshape(2, n).T
+    h = np.clip(noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]])).reshape(2, n).T, 0.0, 1.0)
     e2 = problem.motion_sigma[:, [0, 2]] ** 2 * (w[:, [0, 2]] ** 2 + h)
     k_new = k.copy()
     for g in range(regions.count):
@@ -498,9 +505,13 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     init = initialise(log, start)
     model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float), bearing_sigma=float(start.bearing_sigma))
     coarse = layout(log, COARSE_KNOT_DT)
-    progress.stage("coarse graph", COARSE_ROUNDS)
-    model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, init.poses[coarse.knots], COARSE_ROUNDS,
+    progress.stage("coarse graph", COARSE_HELD_ROUNDS + COARSE_ROUNDS)
+    model, kp, _, _, it0, _ = optimise_rounds(log, coarse, model, init.poses[coarse.knots], COARSE_HELD_ROUNDS,
+                                               COARSE_ITERATIONS, seed, "coarse, maps held", trace, stages, progress,
+                                               freeze=True)
+    model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, kp, COARSE_ROUNDS,
                                                COARSE_ITERATIONS, seed, "coarse", trace, stages, progress)
+    it1 += it0
     poses = fill_in(log, model, coarse.knots, kp)
     full = layout(log, FULL_KNOT_DT)
     it2 = 0

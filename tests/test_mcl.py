@@ -87,6 +87,7 @@ def test_dynamic_motion_models_and_the_graph(tmp_path):
         assert main(["calibrate", str(bundle), "--out", str(run), "--effect", "regional_motion_noise",
                      "--regions", f"{cfg.grid[0]},{cfg.grid[1]},0,0,{cfg.size[0]},{cfg.size[1]}", "--quiet"]) == 0
         entry = json.loads((run / "model.json").read_text())["effects"]["regional_motion_noise"]
+        assert "Motion noise by region" in (run / "report.html").read_text()
         K_eff = from_entry(entry)[1]
         effect_right += _map_right(K_eff, seen, cfg.rough)
         effect_closer += mcl.variance_error(K_eff[seen], K_true[seen]) <= mcl_var

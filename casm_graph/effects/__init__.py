@@ -4,7 +4,7 @@ Write your own by subclassing :class:`Effect` and decorating it with :func:`regi
 README section "Add your own effect".
 """
 from . import (actuator_lag, battery_fade, camera_latency, false_detections,  # noqa: F401
-               landmark_offset, lens_distortion, range_dependent_noise, surface_friction)
+               landmark_offset, lens_distortion, range_dependent_noise, regional_motion_noise, surface_friction)
 from .base import REGISTRY, Effect, get, register
 
 __all__ = ["REGISTRY", "Effect", "get", "register", "catalog"]

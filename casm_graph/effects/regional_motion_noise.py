@@ -33,7 +33,7 @@ def estimate(r, theta, e_r2, e_t2, start) -> np.ndarray:
     """Maximum-likelihood (k_r, k_t, k_d) given the expected squared translation and rotation errors
     of steps with reported (r, theta): k_r in closed form, (k_t, k_d) by Nelder-Mead over their logs."""
     keep = np.abs(r) > 1e-9
-    kr = float(np.mean(e_r2[keep] / np.abs(r[keep]))) if keep.any() else float(start[0])
+    kr = max(float(np.mean(e_r2[keep] / np.abs(r[keep]))), VAR_FLOOR) if keep.any() else float(start[0])
 
     def f(z):
         vt = np.exp(z[0]) * np.abs(theta) + np.exp(z[1]) * np.abs(r) + VAR_FLOOR
