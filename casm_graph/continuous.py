@@ -253,7 +253,8 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     """
     A, e, groups = problem.jacobian(st, poses_only=poses_only)
     regional = problem.seg_region is not None
-    traces = noise.hat_traces(A, groups, seed=seed)
+    lu = noise.information_lu(A)
+    traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
     new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) for k, rows in groups.items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
     m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
@@ -265,7 +266,7 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
     n = len(problem.seg_region)
     w = e[:3 * n].reshape(-1, 3)
-    h = np.clip(noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]])).reshape(2, n).T, 0.0, 1.0)
+    h = np.clip(noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]]), lu=lu).reshape(2, n).T, 0.0, 1.0)
     e2 = problem.motion_sigma[:, [0, 2]] ** 2 * (w[:, [0, 2]] ** 2 + h)
     k_new = k.copy()
     for g in range(regions.count):

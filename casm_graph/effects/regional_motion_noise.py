@@ -13,6 +13,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..log import Log
+from ..simulate_floor import region_of
 from .base import Effect, register
 
 VAR_FLOOR = 1e-8
@@ -62,11 +63,8 @@ class Regions:
 
     def of(self, xy: np.ndarray) -> np.ndarray:
         """Region id of each (x, y), clipped to the grid."""
-        xy = np.atleast_2d(xy)
         x0, y0, x1, y1 = self.extent
-        i = np.clip(((xy[:, 0] - x0) / (x1 - x0) * self.grid[0]).astype(int), 0, self.grid[0] - 1)
-        j = np.clip(((xy[:, 1] - y0) / (y1 - y0) * self.grid[1]).astype(int), 0, self.grid[1] - 1)
-        return j * self.grid[0] + i
+        return region_of(np.atleast_2d(xy) - [x0, y0], (x1 - x0, y1 - y0), self.grid)
 
 
 def entry(regions: Regions, k: np.ndarray, segments=None) -> dict:
