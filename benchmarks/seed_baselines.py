@@ -9,6 +9,7 @@ calibration (sensor curve, command map and trajectory learned with it). Per-regi
 over the regions the true path spent at least MIN_SEGMENTS steps in.
 
     python benchmarks/seed_baselines.py --scasm-trials 10 --mcl-seeds 0 1 2 3 4
+    python benchmarks/seed_baselines.py --scasm-trials 0 --mcl-seeds --sweep-seeds 20   # MCL vs sensing density
 """
 import argparse
 import time
@@ -47,11 +48,7 @@ def mcl_seed(seed: int, minutes: float = 10.0, detect_prob: float | None = None)
     K_true = np.array(truth["motion_model"]["region_k"])
     drive = mcl.drive_of(log)
     out = {}
-    runs = {"default": mcl.run_mcl(drive, cfg.size, cfg.grid, "default", seed=seed)}
-    k_opt = mcl.fit_k(*runs["default"].pairs[:, :4].T)
-    runs["optimal static"] = mcl.run_mcl(drive, cfg.size, cfg.grid, "static", k_static=k_opt, seed=seed)
-    runs["global dynamic"] = mcl.run_mcl(drive, cfg.size, cfg.grid, "global", seed=seed)
-    runs["regional dynamic"] = mcl.run_mcl(drive, cfg.size, cfg.grid, "regional", seed=seed)
+    runs = mcl.run_modes(drive, cfg.size, cfg.grid, seed=seed)
     for name, r in runs.items():
         out[name] = mcl.errors(r.poses, log.truth)
     reg = runs["regional dynamic"]
@@ -67,7 +64,7 @@ def mcl_seed(seed: int, minutes: float = 10.0, detect_prob: float | None = None)
     K_eff = from_entry(fit.model.effects["regional_motion_noise"])[1]
     seen = np.bincount(region_of(log.truth[:-1, 1:3], cfg.size, cfg.grid), minlength=len(K_true)) >= MIN_SEGMENTS
     idx = np.flatnonzero(seen)
-    out["k"] = {name: (mcl.log_error(K[seen], K_true[seen]), [int(idx[i]) for i in mcl.rough_regions(K[seen])],
+    out["k"] = {name: (mcl.log_error(K[seen], K_true[seen]), mcl.rough_among(K, seen),
                        mcl.variance_error(K[seen], K_true[seen]))
                 for name, K in (("mcl map (final windows)", reg.k_final), ("mcl all pairs per region", k_pairs),
                                 ("graph EM", g.k), ("graph effect regional_motion_noise", K_eff))}
@@ -82,7 +79,7 @@ def mcl_seed(seed: int, minutes: float = 10.0, detect_prob: float | None = None)
                                    for g in range(len(K_true))]
     out["landmarks by region"] = np.bincount(region_of(np.unique(log.landmark_xy, axis=0), cfg.size, cfg.grid),
                                              minlength=len(K_true)).tolist()
-    paper_worst = all(out["default"][c] > out[m][c] for m in list(runs)[1:] for c in ("range_error_pct", "angle_error_pct"))
+    paper_worst = mcl.default_worst(out, "range_error_pct") and mcl.default_worst(out, "angle_error_pct")
     print(f"seed {seed}: default worst in range and angle error: {paper_worst}; "
           + "; ".join(f"{k}: log err {v[0]:.2f}, var err {v[2]:.2f}, rough {v[1]}" for k, v in out["k"].items()), flush=True)
     print(f"  mean square of MCL's translation errors / of the true ones, by region: "
@@ -92,13 +89,36 @@ def mcl_seed(seed: int, minutes: float = 10.0, detect_prob: float | None = None)
     return out
 
 
+def sensing_sweep(n_seeds: int, detect_probs, minutes: float = 10.0) -> None:
+    """MCL alone (it takes seconds) over many floors and sensing densities: how often the regional map
+    finds the rough regions and default static is the worst of the four (Table 1's order), per quantity."""
+    print("\n| chance a landmark in view is seen per step | MCL map right | default worst: range % | angle % "
+          "| position RMS | range and angle % | map right and default worst in both | median RMS log(var/var_true) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for p in detect_probs:
+        rows = []
+        for seed in range(n_seeds):
+            t = mcl.floor_trial(FloorConfig(seed=seed, minutes=minutes, detect_prob=p), MIN_SEGMENTS)
+            worst = list(t["default_worst"].values())
+            rows.append((t["map_right"], *worst, worst[0] and worst[1], t["map_right"] and worst[0] and worst[1],
+                         t["variance_error"]))
+        a = np.array(rows)
+        n = len(a)
+        print(f"| {p} | " + " | ".join(f"{int(c.sum())}/{n}" for c in a[:, :6].T) + f" | {np.median(a[:, 6]):.2f} |",
+              flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--scasm-trials", type=int, default=10)
     ap.add_argument("--mcl-seeds", type=int, nargs="*", default=[0, 1, 2, 3, 4])
     ap.add_argument("--mcl-minutes", type=float, default=10.0)
     ap.add_argument("--detect-prob", type=float, default=None, help="floor: chance each landmark in view is seen per step")
+    ap.add_argument("--sweep-seeds", type=int, default=0, help="MCL alone over this many floors per sensing density")
+    ap.add_argument("--sweep-detect", type=float, nargs="*", default=[0.2, 0.5, 0.7, 1.0])
     a = ap.parse_args()
+    if a.sweep_seeds:
+        sensing_sweep(a.sweep_seeds, a.sweep_detect, a.mcl_minutes)
     if a.scasm_trials:
         r = scasm_trials(a.scasm_trials)
         print("\n| method | action RMS mm/s | sensor RMS mm | abs(abs(ratio) - 1) | seconds per trial |")

@@ -18,7 +18,7 @@ import gtsam
 import numpy as np
 from scipy.optimize import minimize
 
-from .effects.regional_motion_noise import estimate, variances
+from .effects.regional_motion_noise import MIN_SEGMENTS, estimate, variances
 from .log import Log, LogError, wrap
 from .simulate_floor import region_of, step
 
@@ -162,6 +162,24 @@ def run_mcl(drive: Drive, size, grid, mode: str = "default", k_static=None, part
                      seconds=time.perf_counter() - t0)
 
 
+MODES = ("default", "optimal static", "global dynamic", "regional dynamic")     # the paper's Table 1 rows
+
+
+def run_modes(drive: Drive, size, grid, seed: int = 0, **kw) -> dict[str, MCLResult]:
+    """The paper's four MCL variants on one log; optimal static is the ML fit to the default run's pairs."""
+    runs = {"default": run_mcl(drive, size, grid, "default", seed=seed, **kw)}
+    k_opt = fit_k(*runs["default"].pairs[:, :4].T)
+    runs["optimal static"] = run_mcl(drive, size, grid, "static", k_static=k_opt, seed=seed, **kw)
+    runs["global dynamic"] = run_mcl(drive, size, grid, "global", seed=seed, **kw)
+    runs["regional dynamic"] = run_mcl(drive, size, grid, "regional", seed=seed, **kw)
+    return runs
+
+
+def default_worst(errs: dict[str, dict], quantity: str) -> bool:
+    """Is default static the worst of the four in ``quantity`` (a key of ``errors``), as in Table 1?"""
+    return all(errs["default"][quantity] > errs[m][quantity] for m in MODES[1:])
+
+
 def errors(poses: np.ndarray, truth: np.ndarray) -> dict:
     """Localisation error against truth: position and heading RMS, and the paper-style per-step
     range and angle errors as a percentage of the distance and angle really moved."""
@@ -202,6 +220,12 @@ def rough_regions(K: np.ndarray, r_ref: float = 0.2, theta_ref: float = 0.1) -> 
     return sorted(int(i) for i in order[cut:])
 
 
+def rough_among(K: np.ndarray, seen: np.ndarray) -> list[int]:
+    """``rough_regions`` judged among the regions ``seen`` (the path's data), as region ids."""
+    idx = np.flatnonzero(seen)
+    return [int(idx[i]) for i in rough_regions(np.asarray(K)[seen])]
+
+
 def log_error(K: np.ndarray, K_true: np.ndarray) -> float:
     """RMS of log(k_est / k_true) over regions and parameters (0 is perfect; 0.69 is a factor 2)."""
     return float(np.sqrt(np.mean(np.log(np.asarray(K) / np.asarray(K_true)) ** 2)))
@@ -213,6 +237,23 @@ def variance_error(K: np.ndarray, K_true: np.ndarray, r_ref: float = 0.2, theta_
     vr, vt = variances(np.asarray(K, float), r_ref, theta_ref)
     tr, tt = variances(np.asarray(K_true, float), r_ref, theta_ref)
     return float(np.sqrt(np.mean(np.concatenate([np.log(vr / tr), np.log(vt / tt)]) ** 2)))
+
+
+def floor_trial(cfg, min_steps: int = MIN_SEGMENTS) -> dict:
+    """The paper's four variants on one simulated floor, scored against its truth: is default static the worst
+    (range %, angle %, position RMS) and does the regional map single out the rough regions among those the
+    path spent at least ``min_steps`` steps in (RMS log(var/var_true) there too)."""
+    from .simulate_floor import simulate
+    log, truth = simulate(cfg)
+    K_true = np.array(truth["motion_model"]["region_k"])
+    runs = run_modes(drive_of(log), cfg.size, cfg.grid, seed=cfg.seed, range_sigma=cfg.range_sigma,
+                     bearing_sigma=cfg.bearing_sigma)
+    err = {m: errors(r.poses, log.truth) for m, r in runs.items()}
+    seen = np.bincount(region_of(log.truth[:-1, 1:3], cfg.size, cfg.grid), minlength=len(K_true)) >= min_steps
+    K = runs["regional dynamic"].k_final
+    return {"errors": err, "map_right": rough_among(K, seen) == sorted(set(cfg.rough) & set(np.flatnonzero(seen).tolist())),
+            "default_worst": {q: default_worst(err, q) for q in ("range_error_pct", "angle_error_pct", "position_rms")},
+            "variance_error": variance_error(K[seen], K_true[seen])}
 
 
 # ----------------------------------------------------------------------------- the factor graph, jointly
