@@ -113,6 +113,20 @@ def test_mcl_map_with_laser_like_sensing():
     assert worst == len(floors)
 
 
+def test_range_start_slopes_are_tried_and_the_likeliest_goes_on():
+    """A range sensor's start slope is picked by the log-likelihood after the held coarse rounds, among the
+    ``SLOPE_STARTS`` slopes whose windows agree best (MRCLAM robot 4 needed it); model.json records them."""
+    from casm_graph import continuous
+    log, _ = simulate(FloorConfig(minutes=2, seed=1))
+    init = continuous.initialise(log, continuous.start_model(log))
+    slopes = [init.slope] + [a.slope for a in init.alternatives]
+    assert len(set(slopes)) == continuous.SLOPE_STARTS
+    fit = continuous.fit(log, marginals=False)
+    tried = fit.model.fit["start_slopes"]
+    assert [s for s, _ in tried] == pytest.approx(slopes, rel=1e-5)
+    assert fit.notes["start_slope"] == pytest.approx(max(tried, key=lambda t: t[1])[0], rel=1e-5)
+
+
 def test_cli_simulates_the_floor(tmp_path):
     assert main(["simulate", str(tmp_path / "f"), "--protocol", "floor", "--minutes", "1"]) == 0
     assert (tmp_path / "f" / "observations.csv").is_file()
