@@ -591,8 +591,8 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                         fit={"method": "graph", "iterations": it1 + it2,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": ll,
                              "converged": converged, "knot_dt": FULL_KNOT_DT,
-                             "start_slopes": [[round(st.slope, 6), round(h[0], 1)] for st, h in zip(starts, held)
-                                              if np.isfinite(st.slope)],
+                             "start_slopes": [[round(s.slope, 6), round(h[0], 1)] for s, h in zip(starts, held)
+                                              if np.isfinite(s.slope)],
                              "outliers_set_aside": {"reading": int((~sel & ~np.isnan(log.obs_reading)).sum()),
                                                     "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())}})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=it1 + it2,
