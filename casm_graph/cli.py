@@ -104,6 +104,10 @@ def _calibrate(args) -> int:
     print(f"calibrated {args.log} with {args.method} in {m.fit['seconds']:.1f} s "
           f"({m.fit['iterations']} iterations, converged={m.fit['converged']})")
     print(f"  reading sigma {m.reading_sigma:.3f}, bearing sigma {m.bearing_sigma:.3f} rad")
+    slopes = m.fit.get("start_slopes", [])
+    if len(slopes) > 1:
+        print(f"  range start slope {max(slopes, key=lambda t: t[1])[0]:.3f}, the likeliest after the held coarse "
+              "rounds of " + ", ".join(f"{s:.3f} (log-likelihood {ll:,.0f})" for s, ll in slopes))
     if "regional_motion_noise" in m.effects:
         from .effects.regional_motion_noise import determined
         e = m.effects["regional_motion_noise"]

@@ -173,6 +173,7 @@ def test_robot4_whole_log_lands_in_the_right_basin(tmp_path):
     run = tmp_path / "run"
     assert main(["calibrate", str(bundle), "--out", str(run), "--quiet"]) == 0
     err, pos = _against_vicon(bundle, run)
+    assert len(json.loads((run / "model.json").read_text())["fit"]["start_slopes"]) == 3
     print(f"robot 4: turn map {100 * err['w']['fraction']:.1f} %, speed map {100 * err['v']['fraction']:.1f} %, "
           f"position RMS {pos:.3f} m")
     # measured 0.8 %, 6.5 %, 0.498 m (2026-11-25, three start slopes); the identity-model graph 0.695 m
