@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from casm_graph import continuous, mcl, scasm
-from casm_graph.effects.regional_motion_noise import MIN_SEGMENTS, Regions, from_entry
+from casm_graph.effects.regional_motion_noise import Regions, from_entry
 from casm_graph.simulate_1d import Sim1DConfig
 from casm_graph.simulate_1d import simulate as sim1d
 from casm_graph.simulate_floor import FloorConfig, region_of
@@ -62,7 +62,7 @@ def mcl_seed(seed: int, minutes: float = 10.0, detect_prob: float | None = None)
                                       regions=Regions((0.0, 0.0, *cfg.size), cfg.grid))
     out["effect seconds"] = time.perf_counter() - t0
     K_eff = from_entry(fit.model.effects["regional_motion_noise"])[1]
-    seen = np.bincount(region_of(log.truth[:-1, 1:3], cfg.size, cfg.grid), minlength=len(K_true)) >= MIN_SEGMENTS
+    seen = mcl.regions_seen(log.truth, cfg.size, cfg.grid)
     idx = np.flatnonzero(seen)
     out["k"] = {name: (mcl.log_error(K[seen], K_true[seen]), mcl.rough_among(K, seen),
                        mcl.variance_error(K[seen], K_true[seen]))
@@ -98,7 +98,7 @@ def sensing_sweep(n_seeds: int, detect_probs, minutes: float = 10.0) -> None:
     for p in detect_probs:
         rows = []
         for seed in range(n_seeds):
-            t = mcl.floor_trial(FloorConfig(seed=seed, minutes=minutes, detect_prob=p), MIN_SEGMENTS)
+            t = mcl.floor_trial(FloorConfig(seed=seed, minutes=minutes, detect_prob=p))
             worst = list(t["default_worst"].values())
             rows.append((t["map_right"], *worst, worst[0] and worst[1], t["map_right"] and worst[0] and worst[1],
                          t["variance_error"]))

@@ -226,6 +226,17 @@ def rough_among(K: np.ndarray, seen: np.ndarray) -> list[int]:
     return [int(idx[i]) for i in rough_regions(np.asarray(K)[seen])]
 
 
+def regions_seen(truth: np.ndarray, size, grid, min_steps: int = MIN_SEGMENTS) -> np.ndarray:
+    """(R,) bool: the regions the true path (truth.csv rows: t, x, y, theta) spent at least ``min_steps`` steps in;
+    elsewhere no method has data and every estimate is its start."""
+    return np.bincount(region_of(truth[:-1, 1:3], size, grid), minlength=grid[0] * grid[1]) >= min_steps
+
+
+def map_right(K: np.ndarray, seen: np.ndarray, rough) -> bool:
+    """Does the regional map ``K`` single out exactly the true ``rough`` regions, among those ``seen``?"""
+    return rough_among(K, seen) == sorted(set(rough) & set(np.flatnonzero(seen).tolist()))
+
+
 def log_error(K: np.ndarray, K_true: np.ndarray) -> float:
     """RMS of log(k_est / k_true) over regions and parameters (0 is perfect; 0.69 is a factor 2)."""
     return float(np.sqrt(np.mean(np.log(np.asarray(K) / np.asarray(K_true)) ** 2)))
@@ -249,9 +260,9 @@ def floor_trial(cfg, min_steps: int = MIN_SEGMENTS) -> dict:
     runs = run_modes(drive_of(log), cfg.size, cfg.grid, seed=cfg.seed, range_sigma=cfg.range_sigma,
                      bearing_sigma=cfg.bearing_sigma)
     err = {m: errors(r.poses, log.truth) for m, r in runs.items()}
-    seen = np.bincount(region_of(log.truth[:-1, 1:3], cfg.size, cfg.grid), minlength=len(K_true)) >= min_steps
+    seen = regions_seen(log.truth, cfg.size, cfg.grid, min_steps)
     K = runs["regional dynamic"].k_final
-    return {"errors": err, "map_right": rough_among(K, seen) == sorted(set(cfg.rough) & set(np.flatnonzero(seen).tolist())),
+    return {"errors": err, "map_right": map_right(K, seen, cfg.rough),
             "default_worst": {q: default_worst(err, q) for q in ("range_error_pct", "angle_error_pct", "position_rms")},
             "variance_error": variance_error(K[seen], K_true[seen])}
 

@@ -14,7 +14,7 @@ import pytest
 
 from casm_graph import mcl
 from casm_graph.cli import main
-from casm_graph.effects.regional_motion_noise import MIN_SEGMENTS, from_entry
+from casm_graph.effects.regional_motion_noise import from_entry
 from casm_graph.log import write
 from casm_graph.simulate_floor import FloorConfig, region_of, simulate
 
@@ -47,11 +47,6 @@ def test_floor_noise_follows_the_region():
     assert np.mean(z[rough]) / np.mean(z[~rough]) == pytest.approx(cfg.rough_factor, rel=0.35)
 
 
-def _map_right(K, seen, rough) -> bool:
-    """Does the regional map single out the rough regions, among the regions the path visited?"""
-    return mcl.rough_among(K, seen) == sorted(set(rough) & set(np.flatnonzero(seen).tolist()))
-
-
 @pytest.mark.science
 def test_dynamic_motion_models_and_the_graph(tmp_path):
     seeds = range(5) if FULL else [2]
@@ -61,15 +56,15 @@ def test_dynamic_motion_models_and_the_graph(tmp_path):
         cfg = FloorConfig(minutes=minutes, seed=seed)
         log, truth = simulate(cfg)
         K_true = np.array(truth["motion_model"]["region_k"])
-        seen = np.bincount(region_of(log.truth[:-1, 1:3], cfg.size, cfg.grid), minlength=len(K_true)) >= MIN_SEGMENTS
+        seen = mcl.regions_seen(log.truth, cfg.size, cfg.grid)
         d = mcl.drive_of(log)
         runs = mcl.run_modes(d, cfg.size, cfg.grid, seed=seed)
         err = {m: mcl.errors(r.poses, log.truth) for m, r in runs.items()}
         default_worst += mcl.default_worst(err, "range_error_pct") and mcl.default_worst(err, "angle_error_pct")
         reg = runs["regional dynamic"]
-        map_right += _map_right(reg.k_final, seen, cfg.rough)
+        map_right += mcl.map_right(reg.k_final, seen, cfg.rough)
         g = mcl.graph_em(d, cfg.size, cfg.grid, reg.poses)
-        graph_right += _map_right(g.k, seen, cfg.rough)
+        graph_right += mcl.map_right(g.k, seen, cfg.rough)
         k_pairs = mcl.regional_fit(reg.pairs, len(K_true))
         mcl_log = min(mcl.log_error(reg.k_final[seen], K_true[seen]), mcl.log_error(k_pairs[seen], K_true[seen]))
         mcl_var = min(mcl.variance_error(reg.k_final[seen], K_true[seen]),
@@ -83,7 +78,7 @@ def test_dynamic_motion_models_and_the_graph(tmp_path):
         entry = json.loads((run / "model.json").read_text())["effects"]["regional_motion_noise"]
         assert "Motion noise by region" in (run / "report.html").read_text()
         K_eff = from_entry(entry)[1]
-        effect_right += _map_right(K_eff, seen, cfg.rough)
+        effect_right += mcl.map_right(K_eff, seen, cfg.rough)
         effect_closer += mcl.variance_error(K_eff[seen], K_true[seen]) <= mcl_var
         print(f"seed {seed}: motion variance error (log RMS) MCL {mcl_var:.2f}, graph_em "
               f"{mcl.variance_error(g.k[seen], K_true[seen]):.2f}, effect {mcl.variance_error(K_eff[seen], K_true[seen]):.2f}; "
