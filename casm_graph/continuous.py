@@ -53,7 +53,8 @@ INIT_WINDOW = 5.0
 SLOPE_FACTORS = np.geomspace(0.75, 1.33, 15)   # range-line slopes tried, relative to the sensor hypothesis's
 SLOPE_STARTS = 3             # range slopes whose windows agree best, each taken through the held coarse rounds; the
                              # likeliest goes on (MRCLAM robot 4: the best-agreeing slope led to a speed map 22 % off,
-                             # log-likelihood 40,959; the runner-up to 13 %, 43,441; the pick flipped between hosts)
+                             # log-likelihood 40,959, on one host though not on another; the likeliest of the three to
+                             # 6.5 %, 44,762)
 COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
 COARSE_HELD_ROUNDS = 3       # coarse rounds with the maps held first: freed on the initialiser's poses, MRCLAM robot 4
                              # (fewest sightings) ran to a speed map 131 % off (log-likelihood 22,036; 42,665 this way)
