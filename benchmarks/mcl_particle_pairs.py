@@ -14,7 +14,6 @@ import argparse
 import numpy as np
 
 from casm_graph import mcl
-from casm_graph.log import wrap
 from casm_graph.simulate_floor import FloorConfig, region_of, step
 from casm_graph.simulate_floor import simulate as simfloor
 
@@ -51,14 +50,8 @@ def run(drive, size, grid, kind: str, lag: int = 10, particles: int = 500, windo
                 K[g] = fit(*np.array(win).T, start=K[g])
                 new[g] = 0
         er[slot], et[slot], meta[slot] = nr, nt, (drive.r[k], drive.theta[k], reg)
-        sl = slice(starts[k + 1], starts[k + 2])
-        if sl.stop > sl.start:
-            rel = drive.landmark_xy[sl][None] - P[:, None, :2]
-            dr = np.hypot(rel[..., 0], rel[..., 1]) - drive.obs_range[sl][None]
-            db = wrap(np.arctan2(rel[..., 1], rel[..., 0]) - P[:, None, 2] - drive.obs_bearing[sl][None])
-            logw = -0.5 * ((dr / range_sigma) ** 2 + (db / bearing_sigma) ** 2).sum(1)
-            w = np.exp(logw - logw.max())
-            idx = mcl._resample(w / w.sum(), rng)
+        idx = mcl.correction(P, drive, slice(starts[k + 1], starts[k + 2]), range_sigma, bearing_sigma, rng)
+        if idx is not None:
             P, er, et = P[idx], er[:, idx], et[:, idx]
         est = mcl._mean_pose(P)
     return K

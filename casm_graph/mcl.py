@@ -100,6 +100,19 @@ def _mean_pose(p: np.ndarray) -> np.ndarray:
     return np.array([p[:, 0].mean(), p[:, 1].mean(), np.arctan2(np.sin(p[:, 2]).mean(), np.cos(p[:, 2]).mean())])
 
 
+def correction(P: np.ndarray, drive: Drive, sl: slice, range_sigma: float, bearing_sigma: float,
+               rng: np.random.Generator) -> np.ndarray | None:
+    """MCL's sensor update: resampling indices of the particles ``P`` weighed by the sightings ``sl`` (None if none)."""
+    if sl.stop <= sl.start:
+        return None
+    rel = drive.landmark_xy[sl][None] - P[:, None, :2]
+    dr = np.hypot(rel[..., 0], rel[..., 1]) - drive.obs_range[sl][None]
+    db = wrap(np.arctan2(rel[..., 1], rel[..., 0]) - P[:, None, 2] - drive.obs_bearing[sl][None])
+    logw = -0.5 * ((dr / range_sigma) ** 2 + (db / bearing_sigma) ** 2).sum(1)
+    w = np.exp(logw - logw.max())
+    return _resample(w / w.sum(), rng)
+
+
 def run_mcl(drive: Drive, size, grid, mode: str = "default", k_static=None, particles: int = 500,
             window: int = 300, refit_every: int = 25, min_pairs: int = 60,
             range_sigma: float = 0.05, bearing_sigma: float = 0.02, seed: int = 0) -> MCLResult:
@@ -130,14 +143,9 @@ def run_mcl(drive: Drive, size, grid, mode: str = "default", k_static=None, part
         vr, vt = variances(K[reg], drive.r[k], drive.theta[k])     # the parameters stored with the region
         P = step(P, drive.r[k] + rng.normal(size=particles) * np.sqrt(vr),
                  drive.theta[k] + rng.normal(size=particles) * np.sqrt(vt))
-        sl = slice(starts[k + 1], starts[k + 2])
-        if sl.stop > sl.start:
-            rel = drive.landmark_xy[sl][None] - P[:, None, :2]
-            dr = np.hypot(rel[..., 0], rel[..., 1]) - drive.obs_range[sl][None]
-            db = wrap(np.arctan2(rel[..., 1], rel[..., 0]) - P[:, None, 2] - drive.obs_bearing[sl][None])
-            logw = -0.5 * ((dr / range_sigma) ** 2 + (db / bearing_sigma) ** 2).sum(1)
-            w = np.exp(logw - logw.max())
-            P = P[_resample(w / w.sum(), rng)]
+        idx = correction(P, drive, slice(starts[k + 1], starts[k + 2]), range_sigma, bearing_sigma, rng)
+        if idx is not None:
+            P = P[idx]
         est[k + 1] = _mean_pose(P)
         d = est[k + 1, :2] - est[k, :2]
         r = d[0] * np.cos(est[k, 2]) + d[1] * np.sin(est[k, 2])
