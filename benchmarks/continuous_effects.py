@@ -13,7 +13,7 @@ import argparse
 import time
 
 from casm_graph import continuous
-from casm_graph.diagnose import BIC_SUPPORT
+from casm_graph.diagnosis import BIC_SUPPORT
 from casm_graph.simulate_floor import FloorConfig, simulate
 
 SWITCH = {"actuator_lag": "lag", "lens_distortion": "lens_k"}

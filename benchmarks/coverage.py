@@ -40,7 +40,7 @@ def one(minutes: float, seed: int) -> dict:
            "ms_per_eval": 1000 * unc.chain.seconds_per_evaluation, "evaluations": unc.chain.evaluations,
            "steps": unc.chain.steps, "walkers": unc.chain.walkers, "tau_max": float(np.max(unc.chain.tau)),
            "too_short": unc.chain.too_short, "quantities": {}}
-    for n, s in unc.summary.items():
+    for n, s in unc.intervals.items():
         t = tv.get(n)
         rec["quantities"][n] = {"median": s["median"], "ci90": s["ci90"], "truth": t,
                                 "inside": None if t is None else bool(s["ci90"][0] <= t <= s["ci90"][1])}

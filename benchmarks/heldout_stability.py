@@ -15,7 +15,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from casm_graph import calibrate, diagnose, effect_fit
+from casm_graph import calibrate_run, diagnosis, effect_fit
 from casm_graph.effects import REGISTRY
 from casm_graph.log import load
 from casm_graph.simulate import SimConfig, simulate, write
@@ -33,17 +33,17 @@ def main():
     w = Path(tempfile.mkdtemp())
     log, truth = simulate(SimConfig(minutes=a.minutes, seed=a.seed, effects={a.effect: a.value}))
     write(log, truth, w / "log")
-    _, fit = calibrate.run(w / "log", w / "run", seed=a.seed)
+    _, fit = calibrate_run.run(w / "log", w / "run", seed=a.seed)
     log = load(w / "log")
-    kw = {"rounds": diagnose.CANDIDATE_ROUNDS, "iterations": diagnose.CANDIDATE_ITERATIONS}
+    kw = {"rounds": diagnosis.CANDIDATE_ROUNDS, "iterations": diagnosis.CANDIDATE_ITERATIONS}
     refit = effect_fit.fit(log, fit.model, fit.poses, [], **kw)
     base = effect_fit.fit(log, refit.model, refit.poses, [], **kw)
-    cand, model, poses = diagnose.fit_candidate(log, refit, base, a.effect)
+    cand, model, poses = diagnosis.fit_candidate(log, refit, base, a.effect)
     for n in a.iterations:
-        diagnose.FOLD_ITERATIONS = n
+        diagnosis.FOLD_ITERATIONS = n
         db, de = [], []
-        hb = diagnose.heldout_log_likelihood(log, base.model, base.poses, [], detail=db)
-        he = diagnose.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de)
+        hb = diagnosis.heldout_log_likelihood(log, base.model, base.poses, [], detail=db)
+        he = diagnosis.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de)
         if a.folds:
             for label, rows in (("base", db), (a.effect, de)):
                 for i, r in enumerate(rows):

@@ -14,7 +14,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from casm_graph import calibrate, diagnose, effect_fit
+from casm_graph import calibrate_run, diagnosis, effect_fit
 from casm_graph.simulate import SimConfig, simulate, write
 
 
@@ -26,15 +26,15 @@ def main():
     w = Path(tempfile.mkdtemp())
     log, truth = simulate(SimConfig(minutes=6, seed=a.seed, effects={"false_detections": a.fraction}))
     write(log, truth, w / "log")
-    log, fit = calibrate.run(w / "log", w / "run", seed=a.seed)
-    kw = {"rounds": diagnose.CANDIDATE_ROUNDS, "iterations": diagnose.CANDIDATE_ITERATIONS}
+    log, fit = calibrate_run.run(w / "log", w / "run", seed=a.seed)
+    kw = {"rounds": diagnosis.CANDIDATE_ROUNDS, "iterations": diagnosis.CANDIDATE_ITERATIONS}
     refit = effect_fit.fit(log, fit.model, fit.poses, [], **kw)
     base = effect_fit.fit(log, refit.model, refit.poses, [], **kw)
-    _, m, p = diagnose.fit_candidate(log, refit, base, "false_detections")
+    _, m, p = diagnosis.fit_candidate(log, refit, base, "false_detections")
     opt = effect_fit.fit(log, m, p, ["false_detections"], **kw)
     for its in (0, 1, 4):
         f = effect_fit.fit(log, opt.model, opt.poses, ["false_detections"], theta=opt.theta, rounds=1,
-                           iterations=its, fit_noise=False, rel_tol=diagnose.FOLD_TOL)
+                           iterations=its, fit_noise=False, rel_tol=diagnosis.FOLD_TOL)
         t = f.problem.log_likelihood_terms(f.state)
         print(f"{its} iterations: log-likelihood {f.log_likelihood:.1f}, " + ", ".join(f"{k} {v:.1f}" for k, v in t.items())
               + f", joint density {t['motion'] + t['observation']:.1f}", flush=True)

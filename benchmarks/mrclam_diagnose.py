@@ -15,18 +15,18 @@ import argparse
 import json
 from pathlib import Path
 
-from casm_graph import calibrate, diagnose_run, groundtruth, mrclam
-from casm_graph.diagnose import BIC_SUPPORT
+from casm_graph import calibrate_run, diagnose_run, groundtruth, mrclam
+from casm_graph.diagnosis import BIC_SUPPORT
 from casm_graph.log import load
 
 
 def run_robot(data: Path, robot: int, out: Path) -> dict:
     bundle = out / f"robot{robot}_log"
     mrclam.import_robot(data, robot, bundle)
-    _, base = calibrate.run(bundle, out / f"robot{robot}")
+    _, base = calibrate_run.run(bundle, out / f"robot{robot}")
     diag = diagnose_run.run(bundle, out / f"robot{robot}" / "model.json", out / f"robot{robot}_diag")
     added = [c.effect for c in diag.candidates if c.delta_bic <= BIC_SUPPORT]
-    _, after = calibrate.run(bundle, out / f"robot{robot}_effects", effects=added) if added else (None, base)
+    _, after = calibrate_run.run(bundle, out / f"robot{robot}_effects", effects=added) if added else (None, base)
     log = load(bundle)
     ev = {name: groundtruth.evaluate(log, f) for name, f in (("base", base), ("after", after))}
     return {"verdict": diag.verdict, "summary": diag.words,

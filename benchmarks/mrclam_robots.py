@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from casm_graph import calibrate, command_report, groundtruth, mrclam
+from casm_graph import calibrate_run, command_report, groundtruth, mrclam
 from casm_graph.log import load
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,7 +29,7 @@ def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: 
         from casm_graph.log import write
         write(log.window(log.t[0], log.t[0] + 60 * minutes), bundle)
     t0 = time.perf_counter()
-    log, fit = calibrate.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects))
+    log, fit = calibrate_run.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects))
     seconds = time.perf_counter() - t0
     ev = groundtruth.evaluate(load(bundle), fit)
     command_report.calibration(out / f"robot{robot}" / "report.html", log, fit, ev)

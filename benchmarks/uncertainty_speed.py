@@ -21,7 +21,7 @@ from casm_graph import ekfs
 from casm_graph.methods.ekfs_em import _observations
 from casm_graph.model import Model
 from casm_graph.simulate import SimConfig, simulate
-from casm_graph.uncertainty import MarginalLikelihood, likelihood
+from casm_graph.marginal_likelihood import MarginalLikelihood, likelihood
 
 
 def truth_model(log, truth) -> Model:

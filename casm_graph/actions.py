@@ -1,8 +1,10 @@
-"""The Aibo's 40-action command set (EKFS-EM paper): attempted (vx, vy, w) on the unit sphere."""
+"""The EKFS-EM paper's Aibo: its field and beacons (m), and its 40-action command set (attempted vx, vy, w)."""
 from __future__ import annotations
 
 import numpy as np
 
+FIELD = (5.4, 3.6)
+BEACONS = np.array([[1.35, 1.95], [-1.35, 1.95], [1.35, -1.95], [-1.35, -1.95]])
 TURNS = (-1 / 2, -1 / 6, 0.0, 1 / 6, 1 / 2)
 DIRECTIONS = (0.0, np.pi / 4, np.pi / 2, 3 * np.pi / 4, np.pi, -3 * np.pi / 4, -np.pi / 2, -np.pi / 4)
 

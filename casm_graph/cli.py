@@ -5,13 +5,21 @@ Exit status 0 on success, 2 on bad input (one clear message, nothing written), 1
 from __future__ import annotations
 
 import argparse
+import contextlib
+import shlex
+import signal
 import sys
 import time
+import warnings
 
 from tqdm import tqdm
 
+from . import calibrate_run, compare, diagnose_run, fleet, mrclam, simulators, uncertainty_run
+from .effects import catalog
+from .effects.regional_motion_noise import determined
 from .log import LogError
 from .methods import METHODS, Progress
+from .output import atomic_dir, checked_out
 
 
 class Bar(Progress):
@@ -46,19 +54,7 @@ class Bar(Progress):
 
 
 def _simulate(args) -> int:
-    from .simulate import SimConfig, simulate, write
-    if args.protocol != "aibo":               # the seed papers' other set-ups (SCASM 1-D, MCL floor)
-        from . import simulate_1d, simulate_floor
-        if args.effect:
-            raise LogError(f"--effect is only available with --protocol aibo (got --protocol {args.protocol})")
-        if args.protocol == "scasm-1d":
-            log, truth = simulate_1d.simulate(simulate_1d.Sim1DConfig(minutes=args.minutes, seed=args.seed,
-                                                                      reading_sigma=args.reading_sigma))
-        else:
-            log, truth = simulate_floor.simulate(simulate_floor.FloorConfig(minutes=args.minutes, seed=args.seed))
-        d = write(log, truth, args.out)
-        print(f"wrote {d}: {args.protocol}, {log.steps} steps, {len(log.obs_t)} observations, {log.minutes:.1f} min")
-        return 0
+    checked_out(args.out, args.force)
     effects = {}
     for item in args.effect:
         name, sep, value = item.partition("=")
@@ -66,20 +62,24 @@ def _simulate(args) -> int:
             effects[name] = float(value) if sep else 1.0
         except ValueError:
             raise LogError(f"--effect {item!r}: value must be a number (NAME=VALUE)") from None
-    cfg = SimConfig(minutes=args.minutes, seed=args.seed, reading_sigma=args.reading_sigma,
-                    bearing_sigma=args.bearing_sigma, effects=effects)
-    log, truth = simulate(cfg)
-    d = write(log, truth, args.out)
-    print(f"wrote {d}: {log.steps} steps, {len(log.obs_t)} observations, {log.minutes:.1f} min")
+    options = {"reading_sigma": args.reading_sigma}
+    if args.protocol == "aibo":
+        options["bearing_sigma"] = args.bearing_sigma
+    if args.protocol == "floor":
+        options = {}
+    log, truth = simulators.simulate(args.protocol, minutes=args.minutes, seed=args.seed, effects=effects, **options)
+    with atomic_dir(args.out, force=args.force) as tmp:
+        simulators.write_log(log, tmp, truth)
+    print(f"wrote {args.out}: {args.protocol}, {log.steps} steps, {len(log.obs_t)} observations, {log.minutes:.1f} min")
     return 0
 
 
 def _calibrate(args) -> int:
-    from .calibrate import SCASM_METHODS, run
     bar = Bar(enabled=not args.quiet)
-    if args.method in SCASM_METHODS:
+    if args.method in calibrate_run.SCASM_METHODS:
         try:
-            _, model = run(args.log, args.out, method=args.method, progress=bar)
+            _, model = calibrate_run.run(args.log, args.out, method=args.method, progress=bar, force=args.force,
+                                         command=command_line(args))
         finally:
             bar.close()
         print(f"calibrated {args.log} with {args.method} in {model['fit']['seconds']:.1f} s")
@@ -87,12 +87,12 @@ def _calibrate(args) -> int:
             print(f"  {k} {v:.4g}")
         print(f"  wrote {args.out}/model.json, trajectory.csv, report.html")
         return 0
-    import warnings
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
-            log, fit = run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
-                           effects=tuple(args.effect), seed=args.seed, progress=bar, regions=args.regions)
+            log, fit = calibrate_run.run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
+                                         effects=tuple(args.effect), seed=args.seed, progress=bar, regions=args.regions,
+                                         force=args.force, command=command_line(args))
     finally:
         bar.close()
     for msg in dict.fromkeys(str(w.message) for w in caught):
@@ -109,7 +109,6 @@ def _calibrate(args) -> int:
         print(f"  range start slope {max(slopes, key=lambda t: t[1])[0]:.3f}, the likeliest after the held coarse "
               "rounds of " + ", ".join(f"{s:.3f} (log-likelihood {ll:,.0f})" for s, ll in slopes))
     if "regional_motion_noise" in m.effects:
-        from .effects.regional_motion_noise import determined
         e = m.effects["regional_motion_noise"]
         for g, (kr, kt, kd, ok) in enumerate(zip(e["k_r"], e["k_t"], e["k_d"], determined(e))):
             n = e.get("segments", [0] * len(e["k_r"]))[g]
@@ -120,10 +119,11 @@ def _calibrate(args) -> int:
 
 
 def _diagnose(args) -> int:
-    from .diagnose_run import run
     bar = Bar(enabled=not args.quiet)
     try:
-        diag = run(args.log, args.model, args.out, workers=args.workers, progress=bar, candidates=args.candidate)
+        with (fleet.client_for(args.scheduler) if args.scheduler else contextlib.nullcontext()) as client:
+            diag = diagnose_run.run(args.log, args.model, args.out, workers=args.workers, progress=bar,
+                                    candidates=args.candidate, force=args.force, client=client)
     finally:
         bar.close()
     print(f"verdict: {diag.verdict}  ({diag.seconds:.0f} s)")
@@ -134,8 +134,9 @@ def _diagnose(args) -> int:
 
 
 def _import_mrclam(args) -> int:
-    from .mrclam import import_robot
-    log, info = import_robot(args.dir, args.robot, args.out)
+    checked_out(args.out, args.force, inputs=[args.dir])
+    with atomic_dir(args.out, force=args.force, inputs=[args.dir]) as tmp:
+        log, info = mrclam.import_robot(args.dir, args.robot, tmp)
     print(f"wrote {args.out}: robot {args.robot}, {log.steps} command steps ({info['command_rows_dropped']} "
           f"repeated times dropped), {len(log.obs_t)} landmark observations "
           f"({info['robot_sightings_dropped']} sightings of robots dropped), {log.minutes:.1f} min, truth.csv from Vicon")
@@ -143,7 +144,6 @@ def _import_mrclam(args) -> int:
 
 
 def _effects(args) -> int:
-    from .effects import catalog
     for c in catalog():
         print(f"{c['name']:<22} {c['channel']:<7} {', '.join(c['parameters'])}")
         print(f"{'':<30}{c['physics']}")
@@ -151,20 +151,20 @@ def _effects(args) -> int:
 
 
 def _uncertainty(args) -> int:
-    import warnings
-    from .uncertainty_run import run
     bar = Bar(enabled=not args.quiet)
     try:
-        with warnings.catch_warnings(record=True):
+        with warnings.catch_warnings(record=True), \
+                (fleet.client_for(args.scheduler) if args.scheduler else contextlib.nullcontext()) as client:
             warnings.simplefilter("always", RuntimeWarning)
-            unc = run(args.log, args.model, args.out, priors=tuple(args.prior), walkers=args.walkers,
-                      max_steps=args.max_steps, seed=args.seed, progress=bar)
+            unc = uncertainty_run.run(args.log, args.model, args.out, priors=tuple(args.prior), walkers=args.walkers,
+                                      max_steps=args.max_steps, seed=args.seed, progress=bar, force=args.force,
+                                      pool=fleet.DaskPool(client) if client is not None else None)
     finally:
         bar.close()
     ch = unc.chain
     print(f"posterior of {len(ch.names)} noise levels in {unc.seconds:.0f} s: {ch.walkers} walkers x {ch.steps} steps "
           f"(burn-in {ch.burn_in}), {1000 * ch.seconds_per_evaluation:.1f} ms per likelihood evaluation")
-    for n, s in unc.summary.items():
+    for n, s in unc.intervals.items():
         print(f"  {n:<24} {s['median']:.4g}  90% [{s['ci90'][0]:.4g}, {s['ci90'][1]:.4g}]")
     for note in ch.notes:
         print(f"casm-graph: warning: {note}", file=sys.stderr)
@@ -173,8 +173,7 @@ def _uncertainty(args) -> int:
 
 
 def _compare(args) -> int:
-    from .compare import run
-    res = run(args.model, args.measured, args.out)
+    res = compare.run(args.model, args.measured, args.out, force=args.force)
     for line in res["summary"]:
         print(line)
     print(f"  wrote {args.out}/comparison.json, report.html")
@@ -194,6 +193,7 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--protocol", default="aibo", choices=["aibo", "scasm-1d", "floor"],
                    help="aibo: the EKFS-EM field (default); scasm-1d: SCASM's walk to and from one beacon; "
                         "floor: a wheeled robot on a floor whose motion noise differs by region (MCL paper)")
+    s.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     s.set_defaults(func=_simulate)
     c = sub.add_parser("calibrate", help="learn the action and sensor models of a log")
     c.add_argument("log")
@@ -205,6 +205,7 @@ def parser() -> argparse.ArgumentParser:
                    help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     c.set_defaults(func=_calibrate)
     d = sub.add_parser("diagnose", help="where the model fails and which effect is missing")
     d.add_argument("log")
@@ -213,12 +214,16 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument("--workers", type=int, default=2, help="processes fitting candidates in parallel")
     d.add_argument("--candidate", action="append", default=None, metavar="NAME",
                    help="try only this effect (repeatable; default: every applicable catalog effect)")
+    d.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="fit the candidates and folds on this Dask scheduler (tcp://host:port or a scheduler file)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     d.set_defaults(func=_diagnose)
     i = sub.add_parser("import-mrclam", help="convert one robot of the UTIAS MRCLAM dataset into a log bundle")
     i.add_argument("dir", help="directory with the dataset's .dat files (one run)")
     i.add_argument("--robot", type=int, required=True, help="robot number 1..5")
     i.add_argument("--out", required=True)
+    i.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     i.set_defaults(func=_import_mrclam)
     e = sub.add_parser("effects", help="list the effect catalog")
     e.set_defaults(func=_effects)
@@ -233,29 +238,54 @@ def parser() -> argparse.ArgumentParser:
     u.add_argument("--max-steps", type=int, default=5000,
                    help="stop here even if the chain is not yet 50 autocorrelation times long (warns)")
     u.add_argument("--seed", type=int, default=0)
+    u.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="evaluate emcee's walkers on this Dask scheduler (tcp://host:port or a scheduler file)")
     u.add_argument("--quiet", action="store_true", help="no progress bar")
+    u.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     u.set_defaults(func=_uncertainty)
     k = sub.add_parser("compare", help="the learned model against independently measured tables")
     k.add_argument("model")
     k.add_argument("--measured", required=True, help="directory with sensor.csv and/or actions.csv")
     k.add_argument("--out", default="compare")
+    k.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     k.set_defaults(func=_compare)
+    fleet.add_commands(sub)
     return p
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that every half-written output is removed on the way out."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
+def command_line(args) -> str:
+    """The command as typed (for the record in model.json)."""
+    return shlex.join(["casm-graph", *args.argv])
+
+
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser().parse_args(argv)
+    args.argv = argv
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return args.func(args)
     except LogError as exc:
         print(f"casm-graph: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("casm-graph: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"casm-graph: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; nothing written",
+              file=sys.stderr)
         return 1
     except Exception as exc:  # any other failure: one line, status 1
-        print(f"casm-graph: failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+        first = (str(exc).strip().splitlines() or [""])[0]       # one line, even for GTSAM's many-line messages
+        print(f"casm-graph: failed: {type(exc).__name__}: {first}", file=sys.stderr)
         return 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -4,18 +4,20 @@ from __future__ import annotations
 import html
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 
 from . import residuals
+from .effects.regional_motion_noise import determined, from_entry, variances
 from .log import Log
 from .methods.base import Fit
-from .report import STYLE, cost_figure, plt, png, sensor_figure
+from .report import STYLE, cost_figure, fit_quality, png, sensor_figure, subplots, trajectory_figure
 
 
 def maps_figure(log: Log, fit: Fit, reference=None):
     """Learned forward-speed and turn-rate maps over the commands run (and a reference map, if given)."""
     cm = fit.model.command
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = subplots(1, 2, figsize=(11, 4))
     for ax, j, name, unit in ((axes[0], 0, "v", "m/s"), (axes[1], 1, "w", "rad/s")):
         c = log.controls[:, j]
         grid = np.linspace(c.min(), c.max(), 200)
@@ -36,24 +38,10 @@ def maps_figure(log: Log, fit: Fit, reference=None):
     return fig
 
 
-def trajectory_figure(log: Log, fit: Fit, others: dict | None = None):
-    fig, ax = plt.subplots(figsize=(6, 8))
-    if log.truth is not None:
-        ax.plot(log.truth[:, 1], log.truth[:, 2], color="0.6", lw=1.5, label="truth")
-    for i, (name, p) in enumerate((others or {}).items()):
-        ax.plot(p[:, 0], p[:, 1], lw=0.6, color=f"C{i + 1}", label=name)
-    ax.plot(fit.poses[:, 0], fit.poses[:, 1], "C0", lw=0.8, label="calibrated graph")
-    ax.plot(log.landmark_xy[:, 0], log.landmark_xy[:, 1], "k^", ms=8, label="landmarks")
-    ax.set(xlabel="x (m)", ylabel="y (m)", title="Trajectory on the map")
-    ax.set_aspect("equal")
-    ax.legend(fontsize=8)
-    return fig
-
-
 def residual_figure(log: Log, fit: Fit):
     r, b = residuals.observation(fit.poses[log.obs_step], log, fit.model)
     d = residuals.distances(fit.poses[log.obs_step], log)
-    fig, axs = plt.subplots(1, 3, figsize=(13, 3.6))
+    fig, axs = subplots(1, 3, figsize=(13, 3.6))
     axs[0].plot(d, r, ".", ms=2, alpha=0.4)
     axs[0].set(xlabel="distance (m)", ylabel="reading residual", title=f"reading (sigma {fit.model.reading_sigma:.3g})")
     axs[1].plot(log.obs_t, b, ".", ms=2, alpha=0.4)
@@ -73,17 +61,16 @@ def residual_figure(log: Log, fit: Fit):
 def regional_noise_figure(log: Log, fit: Fit, r_ref: float = 0.2, theta_ref: float = 0.1):
     """The regional_motion_noise map: per region the translation and rotation sigma of a reference step
     (``r_ref`` m, ``theta_ref`` rad) the fitted k's predict, the trajectory on top; undetermined regions grey."""
-    from .effects.regional_motion_noise import determined, from_entry, variances
     e = fit.model.effects["regional_motion_noise"]
     regions, k = from_entry(e)
     vr, vt = variances(k, r_ref, theta_ref)
     x0, y0, x1, y1 = regions.extent
     nx, ny = regions.grid
     ok = determined(e)
-    fig, axs = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axs = subplots(1, 2, figsize=(12, 4.6))
     for ax, v, unit, title in ((axs[0], 1000 * np.sqrt(vr), "mm", f"translation sigma of a {r_ref:g} m step"),
                                (axs[1], 1000 * np.sqrt(vt), "mrad", f"rotation sigma of a {r_ref:g} m, {theta_ref:g} rad step")):
-        cmap = plt.get_cmap("viridis").copy()
+        cmap = matplotlib.colormaps["viridis"].copy()
         cmap.set_bad("0.85")
         im = ax.imshow(np.where(ok, v, np.nan).reshape(ny, nx), origin="lower", extent=(x0, x1, y0, y1), cmap=cmap)
         fig.colorbar(im, ax=ax, label=unit, shrink=0.8)
@@ -100,8 +87,9 @@ def regional_noise_figure(log: Log, fit: Fit, r_ref: float = 0.2, theta_ref: flo
     return fig
 
 
-def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None) -> None:
-    """report.html of a continuous-command run; ``evaluation`` (from :mod:`groundtruth`) adds the truth checks."""
+def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None, cal=None) -> None:
+    """report.html of a continuous-command run; ``evaluation`` (from :mod:`groundtruth`) adds the truth checks,
+    ``cal`` (the Calibration) the opening table of fit quality."""
     m, f, cm = fit.model, fit.model.fit, fit.model.command
     facts = [("method", f.get("method")), ("iterations", f.get("iterations")), ("seconds", f.get("seconds")),
              ("converged", f.get("converged")), ("steps", log.steps), ("observations", len(log.obs_t)),
@@ -120,10 +108,11 @@ def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None) 
         facts += [(f"position RMS: {k.replace('_', ' ')}", f"{v:.3f} m") for k, v in pr.items()]
         others = {"identity-model graph": evaluation["_trajectories"]["identity_graph"]}
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
-    body = [f"<h1>casm-graph calibration (continuous commands)</h1><table>{info}</table>",
+    body = ["<h1>casm-graph calibration (continuous commands)</h1>", fit_quality(cal) if cal is not None else "",
+            f"<h2>The fit</h2><table>{info}</table>",
             "<h2>Command maps</h2>", png(maps_figure(log, fit, ref)),
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, None)),
-            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit, others)),
+            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, fit.pose_std, others)),
             *(["<h2>Motion noise by region (regional_motion_noise)</h2>", png(regional_noise_figure(log, fit))]
               if "regional_motion_noise" in m.effects else []),
             "<h2>Residuals</h2>", png(residual_figure(log, fit)),

@@ -6,14 +6,14 @@ where it has them (z-scores say whether a difference is within the learned uncer
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from . import report
-from .log import LogError, _Table
+from .log import MAX_POSITION, MAX_READING, MAX_SPEED, LogError, _Table
 from .model import Model
+from .output import atomic_dir, checked_out, json_text
 
 
 def read_measured(directory: Path) -> tuple[dict | None, dict | None]:
@@ -25,14 +25,20 @@ def read_measured(directory: Path) -> tuple[dict | None, dict | None]:
         t = _Table(d / "sensor.csv")
         t.require("distance", "reading")
         t.nonempty()
-        sensor = {"distance": t.numbers("distance"), "reading": t.numbers("reading"),
-                  "std": t.numbers("std", allow_empty=True) if t.has("std") else None}
+        sensor = {"distance": t.numbers("distance", bound=MAX_POSITION, unit=" m"),
+                  "reading": t.numbers("reading", bound=MAX_READING),
+                  "std": t.numbers("std", allow_empty=True, bound=MAX_READING) if t.has("std") else None}
+        for col in ("distance", "std"):
+            bad = np.flatnonzero(sensor[col] < 0) if sensor[col] is not None else []
+            if len(bad):
+                raise LogError(f"sensor.csv, row {bad[0] + 1}, column '{col}': {sensor[col][bad[0]]:g} is negative")
     if (d / "actions.csv").is_file():
         t = _Table(d / "actions.csv")
         t.require("action", "vx", "vy", "w")
         t.nonempty()
         actions = {"action": t.integers("action"),
-                   "v": np.column_stack([t.numbers("vx"), t.numbers("vy"), t.numbers("w")])}
+                   "v": np.column_stack([t.numbers(c, bound=MAX_SPEED, unit=" m/s or rad/s")
+                                         for c in ("vx", "vy", "w")])}
     if sensor is None and actions is None:
         raise LogError(f"{d}: neither sensor.csv nor actions.csv is there")
     return sensor, actions
@@ -79,9 +85,8 @@ def compare(model: Model, sensor: dict | None, actions: dict | None) -> dict:
 
 
 def figure(model: Model, sensor, actions):
-    import matplotlib.pyplot as plt
     n = (sensor is not None) + (actions is not None)
-    fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 4), squeeze=False)
+    fig, axes = report.subplots(1, n, figsize=(6.5 * n, 4), squeeze=False)
     k = 0
     if sensor is not None:
         ax = axes[0, k]
@@ -111,15 +116,17 @@ def figure(model: Model, sensor, actions):
     return fig
 
 
-def run(model_path, measured_dir, out) -> dict:
+def run(model_path, measured_dir, out, force: bool = False) -> dict:
+    """Compare the model at ``model_path`` with the tables in ``measured_dir``; write OUT all or nothing."""
+    checked_out(out, force, inputs=[model_path, measured_dir])
     model = Model.load(model_path)
     sensor, actions = read_measured(Path(measured_dir))
     res = compare(model, sensor, actions)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "comparison.json").write_text(json.dumps(res, indent=2, default=float))
     img = report.png(figure(model, sensor, actions))
     lines = "".join(f"<p>{s}</p>" for s in res["summary"])
-    (out / "report.html").write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph compare</title>"
-                                     f"<style>{report.STYLE}</style></head><body><h1>Learned vs measured</h1>{lines}{img}</body></html>")
+    with atomic_dir(out, force=force, inputs=[model_path, measured_dir]) as tmp:
+        (tmp / "comparison.json").write_text(json_text(res))
+        (tmp / "report.html").write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph compare"
+                                         f"</title><style>{report.STYLE}</style></head><body><h1>Learned vs measured</h1>"
+                                         f"{lines}{img}</body></html>")
     return res

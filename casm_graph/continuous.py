@@ -211,6 +211,11 @@ class Problem:
     def keys_dims(self) -> list[tuple[int, int]]:
         return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_params), (C(0), self.n_poly)]
 
+    def ordering(self, poses_only: bool = False) -> gtsam.Ordering:
+        """Poses in time order, then the command map and polynomial (see :func:`casm_graph.graph.elimination_order`)."""
+        keys = [X(i) for i in range(self.lay.n_poses)]
+        return gtsam.Ordering(keys if poses_only else keys + [M(0), C(0)])
+
     def jacobian(self, st: State, poses_only: bool = False):
         """Whitened sparse Jacobian, residual and the row groups of each noise channel."""
         ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
@@ -258,7 +263,8 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     """
     A, e, groups = problem.jacobian(st, poses_only=poses_only)
     regional = problem.seg_region is not None
-    lu = noise.information_lu(A)
+    lu = noise.information_lu(A, np.arange(A.shape[1]))   # poses in time order, parameters last: little fill,
+                                                          # where minimum degree costs time quadratic in the poses
     traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
     new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) for k, rows in groups.items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]

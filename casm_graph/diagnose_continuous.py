@@ -1,6 +1,6 @@
 """``diagnose`` for logs with continuous commands (e.g. the MRCLAM robots).
 
-The same residual analysis as :mod:`casm_graph.diagnose` (whiteness, binned means and spreads per
+The same residual analysis as :mod:`casm_graph.diagnosis` (whiteness, binned means and spreads per
 covariate, strongest first) on the command-model graph of :mod:`casm_graph.continuous`: the model
 is re-settled on the log (poses, command map and polynomial; noise levels as given), and its
 motion residuals per knot-to-knot segment and its reading and bearing residuals per sighting are
@@ -20,7 +20,7 @@ import numpy as np
 import factors
 
 from . import continuous as CT
-from .diagnose import Candidate, Diagnosis, channel_report, structures, verdict
+from .diagnosis import Candidate, Diagnosis, channel_report, structures, verdict
 from .effects import REGISTRY
 from .log import Log
 from .methods.base import Fit

@@ -1,4 +1,4 @@
-"""``casm-graph diagnose``: load the log and model, find a start trajectory, diagnose, write DIAG."""
+"""Diagnosis of a calibrated log: ``diagnose`` in memory (a Calibration or a model), ``run`` as the command does it."""
 from __future__ import annotations
 
 import csv
@@ -6,11 +6,17 @@ from pathlib import Path
 
 import numpy as np
 
-from . import report
-from .diagnose import Diagnosis, diagnose
+from . import continuous, report
+from .calibration import Calibration
+from .diagnose_continuous import diagnose as diagnose_continuous
+from .diagnosis import Diagnosis
+from .diagnosis import diagnose as diagnose_table
 from .effects import REGISTRY
+from .identifiability import check_identifiable
 from .log import Log, LogError, load
+from .methods.ekfs_em import fit as ekfs_fit
 from .model import Model
+from .output import checked_out
 
 
 def _trajectory_csv(log: Log, model_path: Path) -> np.ndarray | None:
@@ -27,63 +33,67 @@ def _trajectory_csv(log: Log, model_path: Path) -> np.ndarray | None:
     return None
 
 
-def start_trajectory(log: Log, model: Model, model_path: Path) -> np.ndarray:
-    """(T+1, 3) poses: RUN/trajectory.csv beside the model when it fits the log, else the EKF smoother's."""
-    poses = _trajectory_csv(log, model_path)
-    if poses is not None:
-        return poses
-    from .methods.ekfs_em import fit as ekfs_fit
-    return ekfs_fit(log, model, max_iterations=1).poses
-
-
 def check_compatible(log: Log, model: Model, source: str) -> None:
     missing = sorted(set(log.action_ids.tolist()) - set(model.action_ids.tolist()))
     if missing:
         raise LogError(f"{source}: the model has no velocity for action(s) {missing[:10]} that the log runs")
 
 
-def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects=(), candidates=None) -> Diagnosis:
-    """Diagnose the model at ``model_path`` on the bundle at ``log_dir``; write DIAG files to ``out``."""
+def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
+             progress=None, poses: np.ndarray | None = None, client=None) -> Diagnosis:
+    """Where ``calibration`` fails on ``log`` and which effect is missing; in memory (``save`` writes DIAG).
+
+    ``calibration`` is a :class:`Calibration` (its trajectory is the start) or a :class:`Model` (then
+    ``poses`` if given, else a fresh smoother's). ``extra_effects``: user effect classes to consider;
+    ``client``: a Dask ``distributed.Client`` to fit the candidates and folds on (default: a local process pool).
+    """
+    if isinstance(calibration, Calibration):
+        if isinstance(calibration.model, dict):
+            raise LogError(f"diagnose: the {calibration.options.method} models of a 1-D log have no diagnosis")
+        model = calibration.model
+        poses = np.column_stack([calibration.trajectory[k] for k in ("x", "y", "theta")]) if poses is None else poses
+    else:
+        model = calibration
+    check_identifiable(log)
+    source = log.source or "the log"
+    if log.controls is not None:
+        if model.command is None:
+            raise LogError(f"the model has no command map (action_model.kind 'command_poly') for {source}'s "
+                           f"continuous commands; calibrate this log first")
+        if poses is None:
+            if progress is not None:
+                progress.stage("start trajectory", None)
+            poses = continuous.fit(log, model, marginals=False).poses
+        diag = diagnose_continuous(log, model, poses, progress=progress)
+    else:
+        check_compatible(log, model, "the model")
+        model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
+                            action_ids=log.action_ids, velocity_std=None)
+        unknown = [n for n in model.effects if n not in REGISTRY and n not in {c.name for c in extra_effects}]
+        if unknown:
+            raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
+        if poses is None:
+            if progress is not None:
+                progress.stage("start trajectory", None)
+            poses = ekfs_fit(log, model, max_iterations=1).poses
+        diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
+                              candidates=candidates, client=client)
+    diag.log, diag.write_report = log, report.diagnosis
+    return diag
+
+
+def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects=(), candidates=None,
+        force: bool = False, client=None) -> Diagnosis:
+    """Diagnose the model at ``model_path`` on the bundle at ``log_dir``; write DIAG to ``out`` (all or nothing)."""
+    checked_out(out, force, inputs=[log_dir, model_path])
     model_path = Path(model_path)
     model = Model.load(model_path)
     log = load(log_dir)
-    if log.controls is not None:
-        diag = _continuous(log, model, model_path, log_dir, progress)
-        return _write(diag, log, out, progress)
-    check_compatible(log, model, model_path.name)
-    model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
-                        action_ids=log.action_ids, velocity_std=None)
-    unknown = [n for n in model.effects if n not in REGISTRY and n not in {c.name for c in extra_effects}]
-    if unknown:
-        raise LogError(f"{model_path.name}: unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
-    if progress is not None:
-        progress.stage("start trajectory", None)
-    poses = start_trajectory(log, model, model_path)
-    diag = diagnose(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
-                    candidates=candidates)
-    return _write(diag, log, out, progress)
-
-
-def _continuous(log: Log, model: Model, model_path: Path, log_dir, progress) -> Diagnosis:
-    """Continuous commands: the model's trajectory.csv (or a fresh fit's poses), then the continuous diagnosis."""
-    from . import continuous
-    from .diagnose_continuous import diagnose as diagnose_continuous
-    if model.command is None:
-        raise LogError(f"{model_path.name}: {log_dir} has continuous commands but the model has no command map "
-                       f"(action_model.kind 'command_poly'); calibrate this log first")
-    poses = _trajectory_csv(log, model_path)
-    if poses is None:
-        if progress is not None:
-            progress.stage("start trajectory", None)
-        poses = continuous.fit(log, model, marginals=False).poses
-    return diagnose_continuous(log, model, poses, progress=progress)
-
-
-def _write(diag: Diagnosis, log: Log, out, progress) -> Diagnosis:
+    if log.controls is None:
+        check_compatible(log, model, model_path.name)
+    diag = diagnose(log, model, extra_effects=extra_effects, candidates=candidates, workers=workers,
+                    progress=progress, poses=_trajectory_csv(log, model_path), client=client)
     if progress is not None:
         progress.stage("report", None)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    diag.save(out / "diagnosis.json")
-    report.diagnosis(out / "report.html", log, diag)
+    diag.save(out, force=force)
     return diag

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import calibrate, diagnose_run
+from . import calibrate_run, diagnose_run
 from .model import Model
 from .simulate import SimConfig, simulate, true_reading, write
 
@@ -82,7 +82,7 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
     extra = (effect_class,) if effect_class is not None else ()
     log, truth = simulate(SimConfig(minutes=minutes, seed=seed, effects=effects, extra_effects=extra))
     write(log, truth, w / "log")
-    _, fit = calibrate.run(w / "log", w / "run", seed=seed)
+    _, fit = calibrate_run.run(w / "log", w / "run", seed=seed)
     diag = diagnose_run.run(w / "log", w / "run" / "model.json", w / "diag", workers=workers,
                             extra_effects=extra, candidates=candidates)
     cands = [c.to_json() for c in diag.candidates]
@@ -92,7 +92,7 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
     named = diag.verdict if diag.verdict in {c["effect"] for c in cands} else None
     if after and named:
         cls = effect_class if effect_class is not None and named == effect_class.name else named
-        _, fit2 = calibrate.run(w / "log", w / "run_fixed", effects=(cls,), seed=seed)
+        _, fit2 = calibrate_run.run(w / "log", w / "run_fixed", effects=(cls,), seed=seed)
         diag2 = diagnose_run.run(w / "log", w / "run_fixed" / "model.json", w / "diag_fixed", workers=workers,
                                  extra_effects=extra, candidates=candidates)
         trial.error_after = model_error(fit2.model, truth)

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .log import Log, wrap
 from .model import Model
@@ -74,13 +75,36 @@ def _log_likelihood(grid: _Grid, step_of_obs, lm_of_obs, reading, predict, sigma
     steps = step_of_obs[order]
     first = np.flatnonzero(np.r_[True, np.diff(steps) != 0])
     out = np.empty((len(first), *grid.dist.shape[1:]), dtype=np.float32)
-    for lo in range(0, len(first), 1024):
-        g = first[lo:lo + 1024]
-        end = first[lo + 1024] if lo + 1024 < len(first) else len(order)
-        j = order[g[0]:end]
-        z = (reading[j, None, None].astype(np.float32) - pred[lm_of_obs[j]]) / s[j, None, None]
-        out[lo:lo + len(g)] = np.add.reduceat(-0.5 * np.minimum(z * z, OUTLIER_Z2), g - g[0], axis=0)
+    _summed_terms(pred, np.asarray(lm_of_obs, np.int64), np.asarray(reading).astype(np.float32), s,
+                  order.astype(np.int64), np.append(first, len(order)).astype(np.int64), out)
     return steps[first], out
+
+
+@njit(cache=True)
+def _summed_terms(pred, lm, reading, s, order, bounds, out):
+    """out[g] = sum over sightings order[bounds[g]:bounds[g+1]] of -0.5 min(z^2, OUTLIER_Z2) at every cell,
+    z = (reading - pred[lm]) / s, in float32 and in the order numpy's ``add.reduceat`` adds them, the
+    first term plus the running sum of the others (one pass over the sightings, where the array form
+    made six passes over (sightings, ny, nx) arrays)."""
+    cap = np.float32(OUTLIER_Z2)
+    half = np.float32(-0.5)
+    ny, nx = pred.shape[1], pred.shape[2]
+    for g in range(len(bounds) - 1):
+        lo, hi = bounds[g], bounds[g + 1]
+        for k in list(range(lo + 1, hi)) + [lo]:
+            j = order[k]
+            r, sj, p = reading[j], s[j], pred[lm[j]]
+            for y in range(ny):
+                for x in range(nx):
+                    z = (r - p[y, x]) / sj
+                    zz = z * z
+                    if zz > cap:
+                        zz = cap
+                    v = half * zz
+                    if k == lo + 1 or (k == lo and hi == lo + 1):
+                        out[g, y, x] = v
+                    else:
+                        out[g, y, x] += v
 
 
 def _smooth(grid: _Grid, step_of_obs: np.ndarray, lm_of_obs: np.ndarray, reading: np.ndarray,
@@ -137,14 +161,21 @@ def _headings(seg_of_knot, seg_act, t_knot, obs_knot, dirs, bearing, w_max=3.0):
     theta_obs = wrap(dirs - bearing)
     ws = np.linspace(-w_max, w_max, 1201)
     seg_obs = seg_of_knot[obs_knot]
-    t0 = np.array([t_knot[seg_of_knot == s].min() for s in range(n_seg)])
+    # seg_of_knot is non-decreasing: each segment's knots (and, sorted stably, its sightings) are one slice
+    first = np.searchsorted(seg_of_knot, np.arange(n_seg))
+    if np.any(np.bincount(seg_of_knot, minlength=n_seg)[:n_seg] == 0):
+        t0 = np.array([t_knot[seg_of_knot == s].min() for s in range(n_seg)])   # (raises: a segment with no knot)
+    else:
+        t0 = t_knot[first]
     tt = t_knot[obs_knot] - t0[seg_obs]
+    by_seg = np.argsort(seg_obs, kind="stable")
+    cut = np.searchsorted(seg_obs[by_seg], np.arange(n_seg + 1))
     out = np.full((n_seg, 2), np.nan)
     for a in np.unique(seg_act):
         segs = np.flatnonzero(seg_act == a)
         sums = []
         for s in segs:
-            sel = seg_obs == s
+            sel = by_seg[cut[s]:cut[s + 1]]
             sums.append(np.exp(1j * (theta_obs[sel][None, :] - ws[:, None] * tt[sel][None, :])).sum(axis=1))
         sums = np.array(sums)
         if sums.size == 0 or not np.any(np.abs(sums)):
@@ -246,8 +277,9 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float = 0.1) -> St
 
     # 3. body-frame velocity per segment, then per action
     seg_v = np.full((n_seg, 3), np.nan)
+    knot_cut = np.searchsorted(seg_of_knot, np.arange(n_seg + 1))      # seg_of_knot is non-decreasing
     for s in range(n_seg):
-        sel = np.flatnonzero(seg_of_knot == s)
+        sel = np.arange(knot_cut[s], knot_cut[s + 1])
         if len(sel) < 3 or np.isnan(head[s, 0]):
             continue
         tt = t_knot[sel] - t_knot[sel[0]]

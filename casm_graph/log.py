@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -38,39 +40,45 @@ class Log:
     obs_pan: np.ndarray | None = None   # (N,) NaN where unknown; None when the column is absent
     attempted: dict[int, np.ndarray] = field(default_factory=dict)   # actions.csv, information only
     truth: np.ndarray | None = None     # (T+1, 4) t, x, y, theta at pose times, when known
+    source: str | None = None           # the bundle's directory, when loaded from disk
 
     @property
     def steps(self) -> int:
         return len(self.t)
 
-    @property
+    # The derived arrays below are computed once per Log (a Log is never changed after it is built:
+    # ``window``/``prune`` make new ones) and handed out read-only, so a caller that wants to change
+    # one must copy it first; per-segment loops index them freely (issue 25: ``obs_step`` recomputed
+    # on every access made the turn-alias scoring quadratic in the log's length).
+
+    @cached_property
     def dt(self) -> np.ndarray:
         """Duration of each command step; the last step lasts the median step."""
         if len(self.t) == 1:
-            return np.array([1.0])
+            return _frozen(np.array([1.0]))
         d = np.diff(self.t)
-        return np.append(d, np.median(d))
+        return _frozen(np.append(d, np.median(d)))
 
-    @property
+    @cached_property
     def pose_times(self) -> np.ndarray:
-        return np.append(self.t, self.t[-1] + self.dt[-1])
+        return _frozen(np.append(self.t, self.t[-1] + self.dt[-1]))
 
-    @property
+    @cached_property
     def obs_step(self) -> np.ndarray:
         """Index of the pose each observation belongs to (nearest pose time)."""
-        return nearest_index(self.pose_times, self.obs_t)
+        return _frozen(nearest_index(self.pose_times, self.obs_t))
 
-    @property
+    @cached_property
     def landmark_index(self) -> np.ndarray:
         """Row of ``landmark_xy`` for each observation."""
         order = np.argsort(self.landmark_ids)
         pos = np.searchsorted(self.landmark_ids[order], self.obs_landmark)
-        return order[pos]
+        return _frozen(order[pos])
 
-    @property
+    @cached_property
     def action_ids(self) -> np.ndarray:
         """Sorted distinct action ids that were run."""
-        return np.unique(self.action) if self.action is not None else np.array([], int)
+        return _frozen(np.unique(self.action) if self.action is not None else np.array([], int))
 
     @property
     def minutes(self) -> float:
@@ -99,6 +107,12 @@ class Log:
         )
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """``a`` made read-only (a cached array shared by every caller)."""
+    a.flags.writeable = False
+    return a
+
+
 def nearest_index(grid: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Index of the nearest element of the sorted ``grid`` for each ``x``."""
     i = np.clip(np.searchsorted(grid, x), 1, len(grid) - 1)
@@ -114,6 +128,29 @@ def wrap(a):
 
 # --------------------------------------------------------------------------- reading CSV files
 
+# Plain ASCII decimals only: Python's float() also takes '1_350', non-ASCII digits and 'infinity'.
+_NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+_INTEGER = re.compile(r"[+-]?[0-9]+(?:\.0*)?", re.ASCII)
+_NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.ASCII | re.IGNORECASE)
+_BLANK = " \t\r\n"
+_INT64_MAX = 2 ** 63 - 1
+
+# What the units allow (INTERFACE section 1): larger magnitudes are typos or wrong units.
+MAX_TIME = 1e10             # s (Unix times of today are 1.7e9)
+MAX_POSITION = 1e6          # m
+MAX_READING = 1e9           # the sensor's unit
+MAX_ANGLE = 2 * math.pi + 1e-6   # rad (bearing, pan: wrapped or in [0, 2 pi))
+MAX_SPEED = 1e3             # m/s and rad/s
+MAX_HEADING = 1e6           # rad (truth may be unwrapped)
+MIN_MEDIAN_STEP = 1e-6      # s between commands
+
+
+def _show(cell: str) -> str:
+    """A cell quoted for a one-line message (long cells cut, control characters escaped)."""
+    s = cell if len(cell) <= 40 else cell[:40] + "..."
+    return f"'{s}'" if s.isprintable() else ascii(s)
+
+
 class _Table:
     """The columns of one CSV file as strings, with the file name kept for error messages."""
 
@@ -122,7 +159,7 @@ class _Table:
         if not path.is_file():
             raise LogError(f"{path.name}: missing file (expected at {path})")
         try:
-            with path.open(newline="", encoding="utf-8") as fh:
+            with path.open(newline="", encoding="utf-8-sig") as fh:
                 rows = list(csv.reader(fh))
         except UnicodeDecodeError as exc:
             raise LogError(f"{path.name}: not a UTF-8 text file ({exc.reason})") from None
@@ -147,43 +184,64 @@ class _Table:
     def require(self, *cols: str) -> None:
         for c in cols:
             if c not in self.header:
-                raise LogError(f"{self.name}: missing column '{c}' (header: {','.join(self.header)})")
+                raise LogError(f"{self.name}: missing column {_show(c)} (header: {_header(self)})")
 
     def nonempty(self) -> None:
         if not self.rows:
             raise LogError(f"{self.name}: no data rows")
 
-    def numbers(self, col: str, allow_empty: bool = False) -> np.ndarray:
-        """Column as floats; NaN/inf and non-numbers are errors, empty cells NaN when allowed."""
+    def numbers(self, col: str, allow_empty: bool = False, bound: float | None = None,
+                unit: str = "") -> np.ndarray:
+        """Column as floats: plain ASCII decimals only (``_NUMBER``), finite and, with ``bound``, of
+        magnitude at most ``bound``; empty cells are NaN when allowed, anything else is an error."""
         j = self.header.index(col)
         out = np.empty(len(self.rows))
         for i, r in enumerate(self.rows):
-            cell = r[j].strip()
+            cell = r[j].strip(_BLANK)
             if cell == "":
                 if allow_empty:
                     out[i] = np.nan
                     continue
                 raise LogError(f"{self.name}, row {i + 1}, column '{col}': empty cell where a number "
                                f"is required")
-            try:
-                v = float(cell)
-            except ValueError:
-                raise LogError(f"{self.name}, row {i + 1}, column '{col}': '{cell}' is not a "
-                               f"number") from None
+            if not _NUMBER.fullmatch(cell):
+                if _NON_FINITE.fullmatch(cell):
+                    raise LogError(f"{self.name}, row {i + 1}, column '{col}': {_show(cell)} is not a "
+                                   f"finite number")
+                raise LogError(f"{self.name}, row {i + 1}, column '{col}': {_show(cell)} is not a number "
+                               f"(expected a plain ASCII decimal such as -12.5 or 3e-2)")
+            v = float(cell)
             if not math.isfinite(v):
-                raise LogError(f"{self.name}, row {i + 1}, column '{col}': '{cell}' is not a "
-                               f"finite number")
+                raise LogError(f"{self.name}, row {i + 1}, column '{col}': {_show(cell)} is not a "
+                               f"finite number (too large)")
+            if bound is not None and abs(v) > bound:
+                raise LogError(f"{self.name}, row {i + 1}, column '{col}': {_show(cell)} is out of range "
+                               f"(|{col}| <= {bound:g}{unit} expected)")
             out[i] = v
         return out
 
     def integers(self, col: str) -> np.ndarray:
-        x = self.numbers(col)
-        bad = np.flatnonzero(x != np.round(x))
-        if len(bad):
-            i = bad[0]
-            raise LogError(f"{self.name}, row {i + 1}, column '{col}': '{self.rows[i][self.header.index(col)].strip()}'"
-                           f" is not an integer")
-        return x.astype(np.int64)
+        """Column as exact integers (ids): ASCII digits with an optional sign (``7.0`` allowed), parsed
+        as int, never through float, and within int64."""
+        j = self.header.index(col)
+        out = np.empty(len(self.rows), np.int64)
+        for i, r in enumerate(self.rows):
+            cell = r[j].strip(_BLANK)
+            where = f"{self.name}, row {i + 1}, column '{col}'"
+            if cell == "":
+                raise LogError(f"{where}: empty cell where a number is required")
+            if not _INTEGER.fullmatch(cell):
+                if _NUMBER.fullmatch(cell):
+                    raise LogError(f"{where}: {_show(cell)} is not an integer")
+                if _NON_FINITE.fullmatch(cell):
+                    raise LogError(f"{where}: {_show(cell)} is not a finite number")
+                raise LogError(f"{where}: {_show(cell)} is not a number (expected an integer id such as 7)")
+            v = int(cell.split(".")[0])
+            if not -_INT64_MAX <= v <= _INT64_MAX:
+                raise LogError(f"{where}: {_show(cell)} is out of range (ids must fit in 64 bits, "
+                               f"|id| <= {_INT64_MAX})")
+            out[i] = v
+        return out
 
 
 def _increasing(tab: _Table, t: np.ndarray, strict: bool) -> None:
@@ -196,6 +254,35 @@ def _increasing(tab: _Table, t: np.ndarray, strict: bool) -> None:
                        f"({t[i - 1]:g} then {t[i]:g})")
 
 
+def _plausible_step(tab: _Table, t: np.ndarray) -> None:
+    """Times in seconds: command steps far below a microsecond are wrong units or a scaled column."""
+    if len(t) > 1:
+        step = float(np.median(np.diff(t)))
+        if step < MIN_MEDIAN_STEP:
+            raise LogError(f"{tab.name}, rows 1-{len(t)}, column 't': the median step between rows is {step:.3g} s; "
+                           f"times must be in seconds (a median step below {MIN_MEDIAN_STEP:g} s is not plausible)")
+
+
+def _truth_at_poses(truth: np.ndarray, t: np.ndarray) -> np.ndarray | None:
+    """truth.csv at other times than the poses' (one per command step plus the final one): interpolated
+    at the pose times when it covers them, else left out (it is information only, never fitted)."""
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+    pose_t = np.append(t, t[-1] + step)
+    tt = truth[:, 0]
+    if len(tt) < 2 or np.any(np.diff(tt) <= 0) or pose_t[0] < tt[0] or pose_t[-1] > tt[-1]:
+        return None
+    theta = np.interp(pose_t, tt, np.unwrap(truth[:, 3]))
+    return np.column_stack([pose_t, np.interp(pose_t, tt, truth[:, 1]), np.interp(pose_t, tt, truth[:, 2]),
+                            wrap(theta)])
+
+
+def _header(tab: _Table) -> str:
+    """The header row for a one-line message."""
+    h = ",".join(tab.header)
+    h = h if len(h) <= 200 else h[:200] + "..."
+    return h if h.isprintable() else ascii(h)
+
+
 def load(directory: str | Path) -> Log:
     """Read and validate a log bundle; raise :class:`LogError` on any bad input."""
     d = Path(directory)
@@ -206,7 +293,7 @@ def load(directory: str | Path) -> Log:
     lm.require("landmark", "x", "y")
     lm.nonempty()
     ids = lm.integers("landmark")
-    xy = np.column_stack([lm.numbers("x"), lm.numbers("y")])
+    xy = np.column_stack([lm.numbers(c, bound=MAX_POSITION, unit=" m") for c in ("x", "y")])
     _, first = np.unique(ids, return_index=True)
     if len(first) != len(ids):
         dup = next(i for i in range(len(ids)) if i not in set(first))
@@ -215,8 +302,9 @@ def load(directory: str | Path) -> Log:
     cm = _Table(d / "commands.csv")
     cm.require("t")
     cm.nonempty()
-    t = cm.numbers("t")
+    t = cm.numbers("t", bound=MAX_TIME, unit=" s")
     _increasing(cm, t, strict=True)
+    _plausible_step(cm, t)
     action = controls = None
     names: tuple[str, ...] = ()
     if cm.has("action"):
@@ -227,14 +315,14 @@ def load(directory: str | Path) -> Log:
         names = ("v", "w")
     else:
         raise LogError(f"commands.csv: missing column 'action' (or continuous commands 'v,w' or "
-                       f"'vx,vy,w'); header: {','.join(cm.header)}")
+                       f"'vx,vy,w'); header: {_header(cm)}")
     if names:
-        controls = np.column_stack([cm.numbers(c) for c in names])
+        controls = np.column_stack([cm.numbers(c, bound=MAX_SPEED, unit=" m/s or rad/s") for c in names])
 
     ob = _Table(d / "observations.csv")
     ob.require("t", "landmark", "reading", "bearing")
     ob.nonempty()
-    ot = ob.numbers("t")
+    ot = ob.numbers("t", bound=MAX_TIME, unit=" s")
     _increasing(ob, ot, strict=False)
     ol = ob.integers("landmark")
     known = set(ids.tolist())
@@ -242,9 +330,9 @@ def load(directory: str | Path) -> Log:
         if k not in known:
             raise LogError(f"observations.csv, row {i + 1}, column 'landmark': unknown landmark id "
                            f"{k} (landmarks.csv has {sorted(known)})")
-    reading = ob.numbers("reading", allow_empty=True)
-    bearing = ob.numbers("bearing", allow_empty=True)
-    pan = ob.numbers("pan", allow_empty=True) if ob.has("pan") else None
+    reading = ob.numbers("reading", allow_empty=True, bound=MAX_READING)
+    bearing = ob.numbers("bearing", allow_empty=True, bound=MAX_ANGLE, unit=" rad")
+    pan = ob.numbers("pan", allow_empty=True, bound=MAX_ANGLE, unit=" rad") if ob.has("pan") else None
     if np.all(np.isnan(reading) & np.isnan(bearing)):
         raise LogError("observations.csv: every row has both 'reading' and 'bearing' empty")
     step = np.median(np.diff(t)) if len(t) > 1 else 1.0
@@ -259,18 +347,23 @@ def load(directory: str | Path) -> Log:
         ac = _Table(d / "actions.csv")
         ac.require("action", "vx_cmd", "vy_cmd", "w_cmd")
         a_ids = ac.integers("action")
-        cmd = np.column_stack([ac.numbers(c) for c in ("vx_cmd", "vy_cmd", "w_cmd")])
+        cmd = np.column_stack([ac.numbers(c, bound=MAX_SPEED, unit=" m/s or rad/s")
+                               for c in ("vx_cmd", "vy_cmd", "w_cmd")])
         attempted = {int(a): cmd[i] for i, a in enumerate(a_ids)}
 
     truth = None
     if (d / "truth.csv").is_file():
         tr = _Table(d / "truth.csv")
         tr.require("t", "x", "y", "theta")
-        truth = np.column_stack([tr.numbers(c) for c in ("t", "x", "y", "theta")])
+        truth = np.column_stack([tr.numbers(c, bound=b, unit=u) for c, b, u in
+                                 (("t", MAX_TIME, " s"), ("x", MAX_POSITION, " m"), ("y", MAX_POSITION, " m"),
+                                  ("theta", MAX_HEADING, " rad"))])
+        if len(truth) != len(t) + 1:
+            truth = _truth_at_poses(truth, t)
 
     return Log(landmark_ids=ids, landmark_xy=xy, t=t, action=action, controls=controls,
                control_names=names, obs_t=ot, obs_landmark=ol, obs_reading=reading,
-               obs_bearing=bearing, obs_pan=pan, attempted=attempted, truth=truth)
+               obs_bearing=bearing, obs_pan=pan, attempted=attempted, truth=truth, source=str(d))
 
 
 # --------------------------------------------------------------------------- writing

@@ -20,7 +20,7 @@ from scipy.optimize import minimize
 
 from .effects.regional_motion_noise import MIN_SEGMENTS, estimate, variances
 from .log import Log, LogError, wrap
-from .simulate_floor import region_of, step
+from .simulate_floor import region_of, simulate, step
 
 DEFAULT_K = (0.05, 0.2, 0.05)       # generic high-variance parameters (the paper's "default static")
 
@@ -262,7 +262,6 @@ def floor_trial(cfg, min_steps: int = MIN_SEGMENTS) -> dict:
     """The paper's four variants on one simulated floor, scored against its truth: is default static the worst
     (range %, angle %, position RMS) and does the regional map single out the rough regions among those the
     path spent at least ``min_steps`` steps in (RMS log(var/var_true) there too)."""
-    from .simulate_floor import simulate
     log, truth = simulate(cfg)
     K_true = np.array(truth["motion_model"]["region_k"])
     runs = run_modes(drive_of(log), cfg.size, cfg.grid, seed=cfg.seed, range_sigma=cfg.range_sigma,

@@ -12,9 +12,33 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 
-def information_lu(A: sp.csr_matrix):
-    """Sparse LU of the information matrix A^T A of the whitened Jacobian ``A``."""
+class _Permuted:
+    """A factorisation of P^T H P answering ``solve`` for H itself."""
+
+    def __init__(self, lu, order: np.ndarray):
+        self.lu, self.order = lu, order
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        x = np.empty_like(b, dtype=float)
+        x[self.order] = self.lu.solve(np.ascontiguousarray(b[self.order]))
+        return x
+
+
+def information_lu(A: sp.csr_matrix, order: np.ndarray | None = None):
+    """Sparse LU of the information matrix A^T A of the whitened Jacobian ``A``.
+
+    ``order``: a fill-reducing order of A's columns known to the caller (the graph's pose chain,
+    :func:`casm_graph.graph.elimination_order`); SuperLU's minimum-degree ordering otherwise, which takes
+    time quadratic in the number of poses on a long log.
+    """
     H = (A.T @ A).tocsc()
+    if order is not None:
+        H = H[order][:, order].tocsc()
+        try:
+            return _Permuted(splu(H, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True}),
+                             order)
+        except RuntimeError:
+            return _Permuted(splu(H, permc_spec="MMD_AT_PLUS_A"), order)
     try:        # H is symmetric positive definite: no pivoting keeps the fill-reducing order (~20x less fill)
         return splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
@@ -30,9 +54,10 @@ def leverages(A: sp.csr_matrix, rows: np.ndarray, lu=None) -> np.ndarray:
 
 
 def hat_traces(A: sp.csr_matrix, groups: dict[str, np.ndarray], probes: int = 24,
-               seed: int = 0, lu=None) -> dict[str, float]:
-    """tr(P_gg) for each row group of the whitened Jacobian ``A``, by Hutchinson's estimator."""
-    lu = lu if lu is not None else information_lu(A)
+               seed: int = 0, lu=None, order: np.ndarray | None = None) -> dict[str, float]:
+    """tr(P_gg) for each row group of the whitened Jacobian ``A``, by Hutchinson's estimator
+    (``order``: as for :func:`information_lu`)."""
+    lu = lu if lu is not None else information_lu(A, order)
     rng = np.random.default_rng(seed)
     out = {}
     for name, rows in groups.items():

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .log import LogError
-from .uncertainty import MarginalLikelihood
+from .marginal_likelihood import MarginalLikelihood
 
 TAU_FACTOR = 50            # emcee's advice: a chain of at least 50 tau
 CHECK_EVERY = 100
@@ -183,8 +183,10 @@ class Chain:
 
 
 def run(ml: MarginalLikelihood, priors: dict[str, Prior], walkers: int | None = None, max_steps: int = 5000,
-        min_steps: int = 300, seed: int = 0, tau_factor: float = TAU_FACTOR, progress=None) -> Chain:
-    """Sample the noise levels; the run length is set by the autocorrelation time (module docstring)."""
+        min_steps: int = 300, seed: int = 0, tau_factor: float = TAU_FACTOR, progress=None, pool=None) -> Chain:
+    """Sample the noise levels; the run length is set by the autocorrelation time (module docstring).
+
+    ``pool``: anything with ``map`` (e.g. a Dask cluster's pool) that evaluates the walkers in parallel."""
     post = LogPosterior(ml, priors)
     u0 = ml.coords(ml.x_map)
     for i, (pr, lc) in enumerate(zip(post.priors, post.log_coord)):
@@ -212,7 +214,7 @@ def run(ml: MarginalLikelihood, priors: dict[str, Prior], walkers: int | None = 
             p0.append(u)
     p0 = np.array(p0)
     sampler = emcee.EnsembleSampler(walkers, d, post,
-                                    moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)])
+                                    moves=[(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)], pool=pool)
     sampler.random_state = np.random.RandomState(seed).get_state()
     if progress is not None:
         progress.stage("emcee", max_steps)
@@ -253,7 +255,7 @@ def run(ml: MarginalLikelihood, priors: dict[str, Prior], walkers: int | None = 
     return Chain(names=list(ml.names), samples=natural, chain=chain, log_prob=sampler.get_log_prob(),
                  walkers=walkers, steps=steps, burn_in=burn, thin=thin, tau=np.asarray(tau, float),
                  acceptance=float(np.mean(sampler.acceptance_fraction)), too_short=too_short,
-                 mode=ml.natural(mode), evaluations=post.evaluations,
+                 mode=ml.natural(mode), evaluations=post.evaluations + getattr(pool, "items", 0),
                  seconds_per_evaluation=post.seconds / max(post.evaluations, 1),
                  cpu_seconds_per_evaluation=post.cpu_seconds / max(post.evaluations, 1), notes=notes)
 

@@ -6,62 +6,111 @@ import html
 import io
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Ellipse
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from . import graph as G  # noqa: E402
-from . import residuals  # noqa: E402
-from .log import Log  # noqa: E402
-from .methods.base import Fit  # noqa: E402
+from . import graph as G
+from . import residuals
+from .log import Log
+from .methods.base import Fit
+from .simulate import true_reading
 
 STYLE = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
 table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
 th{background:#f0f0f0}img{max-width:100%}.bad{color:#b00}"""
 
 
+def subplots(nrows: int = 1, ncols: int = 1, figsize=None, **kw):
+    """A figure and its axes, made without pyplot so that reports never touch the caller's backend."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(nrows, ncols, **kw)
+
+
 def png(fig) -> str:
-    """An <img> tag holding ``fig`` as an embedded PNG (the figure is closed)."""
+    """An <img> tag holding ``fig`` as an embedded PNG."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
     return f'<img src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
 
 
 def sensor_figure(log: Log, fit: Fit, truth: dict | None):
     m = fit.model
     d_obs = residuals.distances(fit.poses[log.obs_step], log)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = subplots(figsize=(7, 4))
     ok = ~np.isnan(log.obs_reading)
     ax.plot(d_obs[ok], log.obs_reading[ok], ".", ms=1, alpha=0.3, color="0.5", label="readings at fitted poses")
     lo, hi = m.distance_range
     d = np.linspace(lo, hi, 200)
     ax.plot(d, m.reading(d), "C0", lw=2, label="learned")
     if truth is not None and "camera" in truth.get("sensor_model", {}):
-        from .simulate import true_reading
         ax.plot(d, true_reading(truth, d), "C3--", lw=2, label="true")
     ax.set(xlabel="distance (m)", ylabel="reading", title="Sensor model")
     ax.legend()
     return fig
 
 
-def trajectory_figure(log: Log, fit: Fit, std: np.ndarray):
-    fig, ax = plt.subplots(figsize=(7, 6))
-    p = fit.poses
-    ax.plot(p[:, 0], p[:, 1], "C0", lw=0.6, label="estimated")
-    if not np.all(np.isnan(std[:, 0])):
-        band = np.hypot(std[:, 0], std[:, 1])
-        sc = ax.scatter(p[::30, 0], p[::30, 1], c=band[::30], s=6, cmap="viridis", zorder=3)
-        fig.colorbar(sc, ax=ax, label="position std (m)")
+def trajectory_figure(log: Log, poses: np.ndarray, std: np.ndarray, others: dict | None = None, ellipses: int = 60):
+    """The estimated path with 2-sigma ellipses of its marginal x, y std, the truth when the log has it, the map."""
+    fig, ax = subplots(figsize=(7, 6))
+    if log.truth is not None:
+        ax.plot(log.truth[:, 1], log.truth[:, 2], color="0.55", lw=1.2, label="truth")
+    for i, (name, p) in enumerate((others or {}).items()):
+        ax.plot(p[:, 0], p[:, 1], lw=0.6, color=f"C{i + 1}", label=name)
+    ax.plot(poses[:, 0], poses[:, 1], "C0", lw=0.6, label="estimated")
+    if np.isfinite(std[:, :2]).any():
+        for k in np.linspace(0, len(poses) - 1, ellipses).astype(int):
+            if np.isfinite(std[k, :2]).all():
+                ax.add_patch(Ellipse((poses[k, 0], poses[k, 1]), 4 * std[k, 0], 4 * std[k, 1], fill=False,
+                                     color="C0", lw=0.7, alpha=0.8))
+        ax.plot([], [], "o", mfc="none", color="C0", label="2-sigma ellipses (x, y std)")
     ax.plot(log.landmark_xy[:, 0], log.landmark_xy[:, 1], "k^", ms=10, label="landmarks")
     for i, (x, y) in zip(log.landmark_ids, log.landmark_xy):
         ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(6, 6))
     ax.set(xlabel="x (m)", ylabel="y (m)", title="Trajectory on the map")
     ax.set_aspect("equal")
-    ax.legend(loc="upper right")
+    ax.legend(loc="upper right", fontsize=8)
     return fig
+
+
+def fit_quality(cal) -> str:
+    """The page's opening: how good the fit is, in units; the effects and their values; the run's record."""
+    m, log, tr = cal.model, cal.log, cal.trajectory
+    poses = np.column_stack([tr["x"], tr["y"], tr["theta"]])
+    r, b = residuals.observation(poses[log.obs_step], log, m)
+    rows = []
+    if m.command is None and m.velocity_std is not None and np.isfinite(m.velocity_std).any():
+        med = np.nanmedian(m.velocity_std, axis=0)
+        rows.append(("action table std (median over actions)",
+                     f"vx {1000 * med[0]:.1f} mm/s, vy {1000 * med[1]:.1f} mm/s, w {med[2]:.4f} rad/s"))
+    if m.command is not None and m.command.v_std is not None:
+        rows.append(("command map coefficient std", "v " + ", ".join(f"{x:.2g}" for x in m.command.v_std)
+                     + "; w " + ", ".join(f"{x:.2g}" for x in m.command.w_std)))
+    if m.reading_poly_cov is not None:
+        d = np.linspace(*m.distance_range, 50)
+        rows.append(("sensor curve std (median over distances seen)", f"{np.median(m.reading_std(d)):.3g} reading units"))
+    for name, res, unit, sigma in (("reading", r, "reading units", m.reading_sigma), ("bearing", b, "rad", m.bearing_sigma)):
+        ok = np.isfinite(res)
+        if ok.sum() > 2:
+            x = res[ok] - res[ok].mean()
+            r1 = float(np.sum(x[1:] * x[:-1]) / max(np.sum(x * x), 1e-300))
+            rows.append((f"{name} residuals", f"RMS {np.sqrt(np.mean(res[ok] ** 2)):.4g} {unit} (model sigma {sigma:.4g}); "
+                                              f"lag-1 autocorrelation {r1:+.2f}, whiteness p {residuals.ljung_box(res[ok]):.2g}"))
+    pos = np.sqrt(np.nanmean(tr["sx"] ** 2 + tr["sy"] ** 2)) if np.isfinite(tr["sx"]).any() else float("nan")
+    rows.append(("trajectory position std (RMS)", f"{pos:.3f} m"))
+    if log.truth is not None and len(log.truth) == len(poses):
+        err = np.hypot(*(poses[:, :2] - log.truth[:, 1:3]).T)
+        rows.append(("position RMS against truth.csv", f"{np.sqrt(np.mean(err ** 2)):.3f} m"))
+    effects_std = m.fit.get("effects_std", {})
+    for name, params in m.effects.items():
+        vals = ", ".join(f"{k} {v:.4g}" + (f" &plusmn; {effects_std[name][k]:.2g}" if k in effects_std.get(name, {}) else "")
+                         for k, v in params.items() if isinstance(v, (int, float)))
+        rows.append((f"effect {html.escape(name)}", vals or "see model.json"))
+    record = cal.model_json["fit"]
+    rows += [("command", html.escape(str(record.get("command") or "(Python API)"))),
+             ("casm-graph version", html.escape(str(record.get("version")))), ("log", html.escape(str(record.get("log"))))]
+    body = "".join(f"<tr><th style='text-align:left'>{k}</th><td style='text-align:left'>{v}</td></tr>" for k, v in rows)
+    return f"<h2>How good is the fit</h2><table>{body}</table>"
 
 
 def residual_figure(log: Log, fit: Fit):
@@ -70,7 +119,7 @@ def residual_figure(log: Log, fit: Fit):
     mot = residuals.motion(fit.poses, lay, m)
     r, b = residuals.observation(fit.poses[log.obs_step], log, m)
     d = residuals.distances(fit.poses[log.obs_step], log)
-    fig, axs = plt.subplots(2, 2, figsize=(10, 6))
+    fig, axs = subplots(2, 2, figsize=(10, 6))
     t = log.t
     for i, (name, s) in enumerate([("forward (m)", 0), ("turn (rad)", 2)]):
         ax = axs[0, i]
@@ -93,7 +142,7 @@ def residual_figure(log: Log, fit: Fit):
 
 
 def cost_figure(fit: Fit):
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = subplots(figsize=(7, 3.5))
     cost = np.asarray(fit.cost)
     stages = np.asarray(fit.stages)
     for j, st in enumerate(dict.fromkeys(stages)):
@@ -128,8 +177,8 @@ def velocity_table(fit: Fit, truth: dict | None) -> str:
     return summary + f"<table>{head}{''.join(rows)}</table>"
 
 
-def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | None) -> None:
-    """report.html of a calibration run."""
+def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | None, cal=None) -> None:
+    """report.html of a calibration run (``cal``, the Calibration, adds the opening table of fit quality)."""
     m = fit.model
     f = m.fit
     facts = [("method", f.get("method")), ("iterations", f.get("iterations")),
@@ -144,7 +193,6 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
         sm = truth.get("sensor_model", {})
         facts += [("true reading sigma", sm.get("reading_sigma")), ("true bearing sigma", sm.get("bearing_sigma"))]
         if "camera" in sm:
-            from .simulate import true_reading
             d = np.linspace(*m.distance_range, 200)
             facts.append(("sensor curve RMS vs truth", f"{np.sqrt(np.mean((m.reading(d) - true_reading(truth, d)) ** 2)):.3f}"))
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
@@ -155,10 +203,11 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
                 f"{fit.notes['marginals_ridge']:g} x the largest information and are lower bounds.</p>")
     if not f.get("converged", True):
         warn += "<p><b>Warning:</b> the optimiser stopped before converging; check the cost per iteration.</p>"
-    body = [f"<h1>casm-graph calibration</h1>{warn}<table>{info}</table>",
+    body = [f"<h1>casm-graph calibration</h1>{warn}", fit_quality(cal) if cal is not None else "",
+            f"<h2>The fit</h2><table>{info}</table>",
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, truth)),
             "<h2>Cost per iteration</h2>", png(cost_figure(fit)),
-            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit, std)),
+            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, std)),
             "<h2>Residuals</h2>", png(residual_figure(log, fit)),
             "<h2>Action table</h2>", velocity_table(fit, truth)]
     path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph calibration</title>"
@@ -182,7 +231,7 @@ def covariate_panels(diag, top: int = 6):
     pairs = [(ch, c) for ch, r in diag.channels.items() for c in r["covariates"]]
     pairs.sort(key=lambda p: -p[1]["strength"])
     pairs = pairs[:top]
-    fig, axes = plt.subplots(int(np.ceil(len(pairs) / 3)) or 1, 3, figsize=(13, 3.4 * max(1, int(np.ceil(len(pairs) / 3)))),
+    fig, axes = subplots(int(np.ceil(len(pairs) / 3)) or 1, 3, figsize=(13, 3.4 * max(1, int(np.ceil(len(pairs) / 3)))),
                              squeeze=False)
     rng = np.random.default_rng(0)
     for ax, (ch, c) in zip(axes.ravel(), pairs):
@@ -209,7 +258,7 @@ def covariate_panels(diag, top: int = 6):
 
 def field_heatmap(diag):
     """Mean whitened motion residual by where on the field the step began."""
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.4))
+    fig, axes = subplots(1, 3, figsize=(13, 3.4))
     for ax, ch in zip(axes, ("forward", "lateral", "turn")):
         d = diag.residuals[ch]
         hb = ax.hexbin(d.covariates["x"], d.covariates["y"], C=d.residual, gridsize=18, reduce_C_function=np.mean,
@@ -222,7 +271,7 @@ def field_heatmap(diag):
 
 def group_panels(diag):
     """Mean residual per landmark (sensor channels) and per action (motion channels), with 2-SE bars."""
-    fig, axes = plt.subplots(1, 2, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1, 3]})
+    fig, axes = subplots(1, 2, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1, 3]})
     for k, ch in enumerate(("reading", "bearing")):
         d = diag.residuals[ch]
         lm = d.covariates["landmark"]
@@ -254,7 +303,7 @@ def group_panels(diag):
 
 def time_panel(diag):
     """Residuals over time: a moving mean per channel."""
-    fig, ax = plt.subplots(figsize=(13, 3.2))
+    fig, ax = subplots(figsize=(13, 3.2))
     for ch, d in diag.residuals.items():
         order = np.argsort(d.time)
         t, r = d.time[order], d.residual[order]

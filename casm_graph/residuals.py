@@ -10,11 +10,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 
 from .augmented import AState, EffectProblem
 from .graph import Layout
 from .log import Log, wrap
 from .model import Model
+
+LJUNG_BOX_LAGS = 20
 
 
 def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray) -> np.ndarray:
@@ -58,6 +61,18 @@ def distances(poses_at_obs: np.ndarray, log: Log) -> np.ndarray:
     """Distance from each observation's pose to its landmark."""
     rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
     return np.hypot(rel[:, 0], rel[:, 1])
+
+
+def ljung_box(r: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> float:
+    """p-value of the Ljung-Box test that the series ``r`` is white."""
+    r = np.asarray(r, float) - np.mean(r)
+    n = len(r)
+    if n <= lags + 1:
+        return float("nan")
+    den = np.sum(r * r)
+    rho = np.array([np.sum(r[k:] * r[:-k]) / den for k in range(1, lags + 1)])
+    q = n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, lags + 1)))
+    return float(stats.chi2.sf(q, lags))
 
 
 MOTION_COVARIATES = ("time", "x", "y", "heading", "speed", "turn_rate", "time_since_action_change", "action")

@@ -8,21 +8,16 @@ simulated (truth_model.json) the report and model.json also carry the paper's ev
 from __future__ import annotations
 
 import html
-import json
 import time
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from . import scasm  # noqa: E402
-from .calibrate import read_truth_model, write_trajectory  # noqa: E402
-from .log import Log, load  # noqa: E402
-from .model import SCHEMA  # noqa: E402
-from .report import STYLE, png  # noqa: E402
+from . import scasm
+from .calibration import CalibrateOptions, Calibration, read_truth_model, trajectory_array
+from .log import Log
+from .model import SCHEMA
+from .report import STYLE, png, subplots
 
 METHODS = ("scasm", "scasm-graph")
 PAPER = {"action_rms": (29.6, 12.4), "sensor_rms": (70.4, 13.9), "consistency": (0.08, 0.06),
@@ -92,7 +87,7 @@ def learning_curves(history, c_scale: float, o_scale: float, truth: dict) -> np.
 def figures(log: Log, res, loc: np.ndarray, truth: dict | None) -> list[str]:
     walk = scasm.walk_of(log)
     out = []
-    fig, axs = plt.subplots(1, 2, figsize=(12, 4))
+    fig, axs = subplots(1, 2, figsize=(12, 4))
     c = np.linspace(walk.command.min(), walk.command.max(), 200)
     r = np.linspace(walk.reading.min(), walk.reading.max(), 200)
     if truth is None:
@@ -116,7 +111,7 @@ def figures(log: Log, res, loc: np.ndarray, truth: dict | None) -> list[str]:
         ax.legend()
     fig.tight_layout()
     out += ["<h2>Learned models</h2>", png(fig)]
-    fig, ax = plt.subplots(figsize=(12, 3.5))
+    fig, ax = subplots(figsize=(12, 3.5))
     ax.plot(walk.t[walk.obs_step], res.sensor(walk.reading), ".", ms=1.5, color="0.6", label="x_s = S(reading)")
     ax.plot(walk.t, loc, "C0", lw=1, label="location estimate")
     ax.set(xlabel="time (s)", ylabel="location (learned units)", title="The two location estimates (paper Fig. 6)")
@@ -124,7 +119,7 @@ def figures(log: Log, res, loc: np.ndarray, truth: dict | None) -> list[str]:
     out += ["<h2>Location over time</h2>", png(fig)]
     if truth is not None and res.history:
         lc = learning_curves(res.history, res.action.scale, res.sensor.scale, truth)
-        fig, axs = plt.subplots(1, 2, figsize=(12, 3.5))
+        fig, axs = subplots(1, 2, figsize=(12, 3.5))
         axs[0].plot(lc[:, 0], lc[:, 1])
         axs[0].axhline(truth["action_model"]["best_quartic_rms_mm_s"], color="k", ls="--", lw=0.8)
         axs[0].set(xlabel="time (s)", ylabel="mm/s", title="action model error (paper Fig. 8)", ylim=(0, 100))
@@ -136,25 +131,29 @@ def figures(log: Log, res, loc: np.ndarray, truth: dict | None) -> list[str]:
     return out
 
 
-def run(log_dir, out, method: str = "scasm", progress=None):
-    """Calibrate the 1-D bundle at ``log_dir`` with ``method`` and write the run to ``out``."""
-    log = load(log_dir)
+def calibrate(log: Log, options: CalibrateOptions, progress=None) -> Calibration:
+    """Calibrate the 1-D log with ``options.method`` (scasm or scasm-graph); in memory."""
+    method = options.method
     scasm.walk_of(log)                                # wrong kind of log: LogError before any work
     t0 = time.perf_counter()
     res, loc = fit(log, method, progress)
     seconds = time.perf_counter() - t0
-    truth = read_truth_model(Path(log_dir))
+    truth = read_truth_model(log.source)
     if truth is not None and truth.get("protocol") != "scasm_1d":
         truth = None
     evaluation = evaluate(res, truth) if truth is not None else None
-    if progress is not None:
-        progress.stage("report", None)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     model = model_json(res, method, log, seconds, evaluation)
-    (out / "model.json").write_text(json.dumps(model, indent=2))
     poses = np.column_stack([loc, np.zeros_like(loc), np.zeros_like(loc)])
-    write_trajectory(out / "trajectory.csv", log.pose_times, poses, np.full_like(poses, np.nan))
+
+    def write_report(path: Path, cal: Calibration) -> None:
+        path.write_text(report_page(log, res, loc, truth, model, method, seconds, evaluation))
+
+    return Calibration(log=log, model=model, trajectory=trajectory_array(log.pose_times, poses, np.full_like(poses, np.nan)),
+                       options=options, write_report=write_report)
+
+
+def report_page(log: Log, res, loc, truth, model: dict, method: str, seconds: float, evaluation) -> str:
+    """report.html of a 1-D calibration: the paper's evaluation when the truth is known, the models, the walk."""
     facts = [("method", method), ("seconds", f"{seconds:.2f}"), ("frames", log.steps),
              ("readings", int(np.isfinite(log.obs_reading).sum()))]
     facts += [(k, v) for k, v in model["fit"]["constants"].items()]
@@ -174,6 +173,5 @@ def run(log_dir, out, method: str = "scasm", progress=None):
                 f"{evaluation['best_cubic_rms_mm']:.1f}</td><td>{p['best_quartic']} / {p['best_cubic']}</td></tr></table>")
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
     body = [f"<h1>casm-graph calibration: {method}</h1><table>{info}</table>", rows, *figures(log, res, loc, truth)]
-    (out / "report.html").write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>{method}</title>"
-                                     f"<style>{STYLE}</style></head><body>{''.join(body)}</body></html>")
-    return log, model
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{method}</title>"
+            f"<style>{STYLE}</style></head><body>{''.join(body)}</body></html>")

@@ -13,11 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from . import log as logmod
-from .actions import attempted_table
+from .actions import BEACONS, FIELD, attempted_table
+from .effects import get as get_effect
 from .log import Log, LogError, wrap
-
-FIELD = (5.4, 3.6)
-BEACONS = np.array([[1.35, 1.95], [-1.35, 1.95], [1.35, -1.95], [-1.35, -1.95]])
 
 
 @dataclass
@@ -103,7 +101,6 @@ def _choose(pose, table, counts, n, dt, margin, rng) -> int:
 
 def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     """Run the protocol; return the log (with truth) and the truth model as a JSON-ready dict."""
-    from .effects import get as get_effect
     own = {cls.name: cls for cls in cfg.extra_effects}
     effects = [own[name]() if name in own else get_effect(name)() for name in cfg.effects]   # unknown names fail first
     for e in effects:

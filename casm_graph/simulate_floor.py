@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .effects.regional_motion_noise import region_of
 from .log import Log, LogError, wrap
 
 SMOOTH = (0.002, 0.01, 0.002)         # k_r (m), k_t (rad), k_d (rad^2/m): a hard floor
@@ -47,14 +48,6 @@ def region_params(cfg: FloorConfig) -> np.ndarray:
     k = np.tile(np.asarray(cfg.smooth, float), (cfg.grid[0] * cfg.grid[1], 1))
     k[list(cfg.rough)] *= cfg.rough_factor
     return k
-
-
-def region_of(xy: np.ndarray, size, grid) -> np.ndarray:
-    """Region id of each (x, y): row-major cells of the grid, clipped to the map."""
-    xy = np.atleast_2d(xy)
-    i = np.clip((xy[:, 0] / size[0] * grid[0]).astype(int), 0, grid[0] - 1)
-    j = np.clip((xy[:, 1] / size[1] * grid[1]).astype(int), 0, grid[1] - 1)
-    return j * grid[0] + i
 
 
 def step(pose: np.ndarray, r: np.ndarray, theta: np.ndarray) -> np.ndarray:

@@ -71,6 +71,9 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
     hist.cost.append(cost)
     direct = hasattr(problem, "solve_damped")
     damping = {}                # lam moves by factors of ten: each level's damping graph is built once
+    # the problem's own elimination order when it has one (GTSAM's default COLAMD costs time quadratic
+    # in the number of poses on a long log); the same for every iteration, so computed once
+    order = problem.ordering(freeze_parameters) if not direct and hasattr(problem, "ordering") else None
     for _ in range(max_iterations):
         if direct:
             neq = problem.normal_equations(st, poses_only=freeze_parameters)
@@ -85,7 +88,7 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
                     damping[lam] = _damping(keys_dims, lam)
                 system.push_back(damping[lam])
                 try:
-                    trial = problem.retract(st, system.optimize())
+                    trial = problem.retract(st, system.optimize() if order is None else system.optimize(order))
                 except RuntimeError:        # GTSAM: indeterminate at this damping; damp more, as for a failed step
                     trial = None
             new_cost = problem.cost(trial) if trial is not None else np.inf

@@ -5,13 +5,11 @@ import html
 from pathlib import Path
 
 import corner
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from .report import STYLE, png  # noqa: E402
+from .report import STYLE, png, subplots
+from .simulate import true_reading
 
 WEAK_FACTOR = 2.5         # an action whose std exceeds this many times the typical one is weakly observed
 PINNED_WIDTH = 0.5        # a noise level is pinned down when its 90 % interval spans less than +-50 %
@@ -29,12 +27,12 @@ def true_values(unc) -> dict:
     out = {"reading_sigma": sm.get("reading_sigma"), "bearing_sigma": sm.get("bearing_sigma")}
     if mn is not None:
         out.update(motion_noise_forward=mn[0], motion_noise_lateral=mn[1], motion_noise_turn=mn[2])
-    for name in unc.summary:
+    for name in unc.intervals:
         if "." in name:
             eff, par = name.split(".", 1)
             v = t.get("effects", {}).get(eff, {}).get(par)
             out[name] = v if v is not None else (0.0 if eff not in t.get("effects", {}) else None)
-    return {k: float(v) for k, v in out.items() if v is not None and k in unc.summary}
+    return {k: float(v) for k, v in out.items() if v is not None and k in unc.intervals}
 
 
 def true_table(unc) -> np.ndarray | None:
@@ -90,7 +88,7 @@ def assess(unc) -> dict:
     """Known-how-well, cannot-pin-down and advice, as sentences and flags (the report prints them)."""
     known, weak, advice = [], [], []
     flags = {}
-    for n, s in unc.summary.items():
+    for n, s in unc.intervals.items():
         lo, hi = s["ci90"]
         med = s["median"]
         pr = unc.priors[n]
@@ -154,7 +152,8 @@ def corner_figure(unc):
     ch = unc.chain
     truths = true_values(unc)
     scale = ["log" if n in UNITS else "linear" for n in ch.names]     # sigmas on log axes
-    fig = corner.corner(ch.samples, labels=ch.names, quantiles=[0.05, 0.5, 0.95], show_titles=True, axes_scale=scale,
+    side = 2.0 * len(ch.names) + 1.0         # corner's own size rule; given a figure it makes no pyplot one
+    fig = corner.corner(ch.samples, fig=Figure(figsize=(side, side)), labels=ch.names, quantiles=[0.05, 0.5, 0.95], show_titles=True, axes_scale=scale,
                         title_fmt=".3g", truths=[truths.get(n) for n in ch.names] if truths else None,
                         truth_color="C3", label_kwargs={"fontsize": 8}, title_kwargs={"fontsize": 8})
     return fig
@@ -163,7 +162,7 @@ def corner_figure(unc):
 def trace_figure(unc):
     ch = unc.chain
     d = len(ch.names)
-    fig, axes = plt.subplots(d, 1, figsize=(9, 1.6 * d + 0.5), sharex=True, squeeze=False)
+    fig, axes = subplots(d, 1, figsize=(9, 1.6 * d + 0.5), sharex=True, squeeze=False)
     for i, ax in enumerate(axes[:, 0]):
         ax.plot(ch.chain[:, :, i], lw=0.4, alpha=0.5, color="k")
         if ch.names[i] in UNITS:
@@ -181,12 +180,11 @@ def sensor_band_figure(unc, verdict):
     lo, hi = verdict["visited"]
     d = np.linspace(max(lo, 0.05), hi, 300)
     mean, s = m.reading(d), m.reading_std(d)
-    fig, (ax, axh) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    fig, (ax, axh) = subplots(2, 1, figsize=(8, 5.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     ax.fill_between(d, mean - 1.645 * s, mean + 1.645 * s, color="C0", alpha=0.3, label="90 % band")
     ax.plot(d, mean, "C0", lw=1.5, label="learned curve")
     t = unc.truth
     if t is not None and "camera" in t.get("sensor_model", {}):
-        from .simulate import true_reading
         ax.plot(d, true_reading(t, d), "C3--", lw=1.2, label="true")
     for a, b in verdict["gaps"]:
         ax.axvspan(a, b, color="0.85", zorder=0)
@@ -205,7 +203,7 @@ def sensor_band_figure(unc, verdict):
 def velocity_std_figure(unc, verdict):
     m = unc.model
     std = m.velocity_std
-    fig, axes = plt.subplots(3, 1, figsize=(10, 6), sharex=True)
+    fig, axes = subplots(3, 1, figsize=(10, 6), sharex=True)
     x = np.arange(len(m.action_ids))
     weak = np.zeros(len(x), bool)
     weak[verdict["weak_actions"]] = True
@@ -228,7 +226,7 @@ def _table(unc) -> str:
     head = "<tr><th>quantity</th><th>model</th><th>median</th><th>90 % interval</th><th>tau</th><th>prior</th>"
     head += "<th>truth</th><th>inside</th></tr>" if truths else "</tr>"
     rows = []
-    for i, (n, s) in enumerate(unc.summary.items()):
+    for i, (n, s) in enumerate(unc.intervals.items()):
         cells = [n, f"{unc.ml.x_map[i]:.4g}", f"{s['median']:.4g}", f"{s['ci90'][0]:.4g} to {s['ci90'][1]:.4g}",
                  f"{unc.chain.tau[i]:.1f}", html.escape(unc.priors[n].describe())]
         if truths:

@@ -8,7 +8,6 @@ trace.png and report.html.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,11 +16,15 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from . import posterior as P
-from .calibrate import read_truth_model
-from .diagnose_run import check_compatible, start_trajectory
+from . import uncertainty_report
+from .calibration import Calibration, read_truth_model
+from .diagnose_run import _trajectory_csv, check_compatible
+from .identifiability import check_identifiable
 from .log import Log, LogError, load
+from .methods.ekfs_em import fit as ekfs_fit
 from .model import Model
-from .uncertainty import MarginalLikelihood, likelihood
+from .output import atomic_dir, checked_out, json_text
+from .marginal_likelihood import MarginalLikelihood, likelihood
 
 SCHEMA = "casm-graph/posterior/1"
 DRAWS = 64                 # posterior noise draws the table's and polynomial's Laplace marginals are averaged over
@@ -35,18 +38,35 @@ class Uncertainty:
     model: Model                # at the posterior median noise, with Laplace std
     ml: MarginalLikelihood
     chain: P.Chain
-    summary: dict
+    intervals: dict              # each sampled quantity: median and ci90
     priors: dict
     cov_theta: np.ndarray
     truth: dict | None
     seconds: float
     draws: int = DRAWS
 
+    def summary(self) -> str:
+        """Each sampled noise level's median and 90 % interval, and the sampler's figures."""
+        ch = self.chain
+        lines = [f"posterior of {len(ch.names)} noise levels: {ch.walkers} walkers x {ch.steps} steps "
+                 f"(burn-in {ch.burn_in}), acceptance {ch.acceptance:.2f}"]
+        lines += [f"  {n:<24} {s['median']:.4g}  90% [{s['ci90'][0]:.4g}, {s['ci90'][1]:.4g}]"
+                  for n, s in self.intervals.items()]
+        return "\n".join(lines + [f"  note: {n}" for n in ch.notes])
+
+    def save(self, out, force: bool = False) -> Path:
+        """Write UNC (posterior.json, model.json, corner.png, trace.png, report.html) all or nothing."""
+        with atomic_dir(out, force=force, inputs=[self.log.source] if self.log.source else []) as tmp:
+            (tmp / "posterior.json").write_text(json_text(self.to_json()))
+            (tmp / "model.json").write_text(json_text(self.model.to_json()))
+            uncertainty_report.write(tmp, self)
+        return Path(out)
+
     def to_json(self) -> dict:
         ch = self.chain
         return {
             "schema": SCHEMA,
-            "parameters": {n: {**s, "prior": self.priors[n].describe()} for n, s in self.summary.items()},
+            "parameters": {n: {**s, "prior": self.priors[n].describe()} for n, s in self.intervals.items()},
             "sampler": {"walkers": ch.walkers, "steps": ch.steps, "burn_in": ch.burn_in,
                         "acceptance_fraction": ch.acceptance,
                         "autocorr_time": {n: float(t) for n, t in zip(ch.names, ch.tau)},
@@ -69,14 +89,17 @@ class Uncertainty:
         }
 
 
-def prepare(log: Log, model: Model, model_path: Path) -> tuple[Model, np.ndarray]:
-    """The model indexed like the log's actions, and a start trajectory (RUN/trajectory.csv when it fits)."""
+def prepare(log: Log, model: Model, poses: np.ndarray | None = None, source: str = "the model") -> tuple[Model, np.ndarray]:
+    """The model indexed like the log's actions, and a start trajectory (``poses``, else the EKF smoother's)."""
     if model.command is not None or log.action is None:
-        raise LogError(f"{model_path.name}: uncertainty needs a table action model and a log with an 'action' column")
-    check_compatible(log, model, model_path.name)
+        raise LogError(f"{source}: uncertainty needs a table action model and a log with an 'action' column "
+                       f"(continuous-command logs are not supported yet)")
+    check_compatible(log, model, source)
     model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                         action_ids=log.action_ids, velocity_std=None)
-    return model, start_trajectory(log, model, model_path)
+    if poses is None:
+        poses = ekfs_fit(log, model, max_iterations=1).poses
+    return model, poses
 
 
 def mixed_marginals(ml: MarginalLikelihood, samples: np.ndarray, draws: int = DRAWS, seed: int = 0):
@@ -101,8 +124,9 @@ def mixed_marginals(ml: MarginalLikelihood, samples: np.ndarray, draws: int = DR
 
 def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (), walkers: int | None = None,
             max_steps: int = 5000, seed: int = 0, truth: dict | None = None, progress=None,
-            draws: int = DRAWS) -> Uncertainty:
-    """Sample the noise levels of ``model`` on ``log`` and the Laplace marginals at their posterior median."""
+            draws: int = DRAWS, pool=None) -> Uncertainty:
+    """Sample the noise levels of ``model`` on ``log`` and the Laplace marginals at their posterior median
+    (``pool``: anything with ``map``, e.g. a Dask cluster's, to evaluate emcee's walkers on)."""
     t0 = time.perf_counter()
     overrides = dict(P.parse_prior(s) for s in priors)
     if progress is not None:
@@ -111,7 +135,7 @@ def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] =
     with threadpool_limits(1):
         ml = likelihood(log, model, poses)
         pri = P.priors_for(ml, overrides)
-        ch = P.run(ml, pri, walkers=walkers, max_steps=max_steps, seed=seed, progress=progress)
+        ch = P.run(ml, pri, walkers=walkers, max_steps=max_steps, seed=seed, progress=progress, pool=pool)
         summ = P.summary(ch)
         if progress is not None:
             progress.stage("marginals", None)
@@ -137,22 +161,37 @@ def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] =
     return Uncertainty(log, new, ml, ch, summ, pri, cov, truth, time.perf_counter() - t0, draws)
 
 
+def uncertainty(log: Log, calibration: Calibration | Model, priors: tuple[str, ...] = (), walkers: int | None = None,
+                max_steps: int = 5000, seed: int = 0, progress=None, pool=None) -> Uncertainty:
+    """The posterior of the noise levels (emcee) and the Laplace marginals of the rest; in memory (``save`` writes UNC)."""
+    check_identifiable(log)
+    for s in priors:
+        P.parse_prior(s)
+    if isinstance(calibration, Calibration):
+        if isinstance(calibration.model, dict):
+            raise LogError(f"uncertainty: the {calibration.options.method} models of a 1-D log have no posterior here")
+        model = calibration.model
+        poses = np.column_stack([calibration.trajectory[k] for k in ("x", "y", "theta")])
+    else:
+        model, poses = calibration, None
+    model, poses = prepare(log, model, poses)
+    return compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(log.source), progress,
+                   pool=pool)
+
+
 def run(log_dir, model_path, out, priors: tuple[str, ...] = (), walkers: int | None = None, max_steps: int = 5000,
-        seed: int = 0, progress=None) -> Uncertainty:
-    """The command: load and check everything first (bad input writes nothing), compute, write UNC."""
+        seed: int = 0, progress=None, force: bool = False, pool=None) -> Uncertainty:
+    """The command: check everything first (bad input writes nothing), compute, write UNC all or nothing."""
+    checked_out(out, force, inputs=[log_dir, model_path])
     model_path = Path(model_path)
     for s in priors:
         P.parse_prior(s)
     model = Model.load(model_path)
     log = load(log_dir)
-    model, poses = prepare(log, model, model_path)
-    unc = compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(Path(log_dir)), progress)
+    model, poses = prepare(log, model, _trajectory_csv(log, model_path), model_path.name)
+    unc = compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(log.source), progress,
+                  pool=pool)
     if progress is not None:
         progress.stage("report", None)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "posterior.json").write_text(json.dumps(unc.to_json(), indent=2))
-    unc.model.save(out / "model.json")
-    from . import uncertainty_report
-    uncertainty_report.write(out, unc)
+    unc.save(out, force=force)
     return unc

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from casm_graph import calibrate
-from casm_graph import diagnose as D
+from casm_graph import calibrate_run
+from casm_graph import diagnosis as D
 from casm_graph.effects import REGISTRY
 from casm_graph.residuals import Channel
 
@@ -112,7 +112,7 @@ def test_effects_command_lists_the_catalog():
 def short_run(short_bundle, tmp_path_factory):
     d = short_bundle[0]
     out = tmp_path_factory.mktemp("run")
-    calibrate.run(d, out)
+    calibrate_run.run(d, out)
     return d, out
 
 

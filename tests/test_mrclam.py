@@ -10,10 +10,10 @@ import pytest
 
 import factors
 from casm_graph import continuous as CT
-from casm_graph import calibrate, diagnose_run, groundtruth, mrclam
+from casm_graph import calibrate_run, diagnose_run, groundtruth, mrclam
 from casm_graph.cli import main
 from casm_graph.command_model import CommandModel, for_commands
-from casm_graph.diagnose import BIC_SUPPORT
+from casm_graph.diagnosis import BIC_SUPPORT
 from casm_graph.log import load
 from casm_graph.model import Model
 
@@ -195,13 +195,13 @@ def test_issue7_targets_with_the_effects_the_diagnosis_finds(robot, tmp_path):
     bundle = tmp_path / f"robot{robot}"
     assert main(["import-mrclam", str(DATA), "--robot", str(robot), "--out", str(bundle)]) == 0
     if FULL:
-        _, base = calibrate.run(bundle, tmp_path / "base")
+        _, base = calibrate_run.run(bundle, tmp_path / "base")
         diag = diagnose_run.run(bundle, tmp_path / "base" / "model.json", tmp_path / "diag")
         added = [c.effect for c in diag.candidates if c.delta_bic <= BIC_SUPPORT]
         assert "lens_distortion" in added
     else:
         added = ["lens_distortion", "actuator_lag"]
-    _, fit = calibrate.run(bundle, tmp_path / "run", effects=added)
+    _, fit = calibrate_run.run(bundle, tmp_path / "run", effects=added)
     ev = groundtruth.evaluate(load(bundle), fit)
     me, pr = ev["map_error"], ev["position_rms"]
     print(f"robot {robot} with {added}: turn map {100 * me['w']['fraction']:.1f} %, speed map "

@@ -14,7 +14,7 @@ from scipy.sparse.linalg import splu
 
 from casm_graph import ekfs
 from casm_graph import graph as G
-from casm_graph import uncertainty as U
+from casm_graph import marginal_likelihood as U
 from casm_graph.augmented import EffectProblem
 from casm_graph.cli import main
 from casm_graph.log import LogError
@@ -221,7 +221,7 @@ def test_coverage_of_credible_intervals():
         unc = compute(log, fit.model, fit.poses, seed=seed, truth=truth, max_steps=5000 if FULL else 800)
         assert np.all(np.isfinite(unc.chain.tau)) and np.max(unc.chain.tau) < unc.chain.steps / 20
         for n, t in true_values(unc).items():
-            lo, hi = unc.summary[n]["ci90"]
+            lo, hi = unc.intervals[n]["ci90"]
             inside.setdefault(n, []).append(lo <= t <= hi)
         vel.append(np.abs(unc.model.velocities - true_table(unc)) / unc.model.velocity_std <= Z90)
     v = float(np.mean(vel))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..log import Log
+from ..log import Log, LogError
 
 REGISTRY: dict[str, type["Effect"]] = {}
 
@@ -106,7 +106,6 @@ def register(cls: type[Effect]) -> type[Effect]:
 
 
 def get(name: str) -> type[Effect]:
-    from ..log import LogError
     if name not in REGISTRY:
         raise LogError(f"unknown effect {name!r} (known: {', '.join(sorted(REGISTRY))})")
     return REGISTRY[name]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..actions import BEACONS
 from .base import Effect, register
 
 PRIOR_SIGMA = 0.5   # m, on each shape coordinate
@@ -35,7 +36,6 @@ class LandmarkOffset(Effect):
         if log is not None:
             self.ids, xy = log.landmark_ids, log.landmark_xy
         else:
-            from ..simulate import BEACONS
             self.ids, xy = np.arange(len(BEACONS)), BEACONS
         self.Q = shape_basis(np.asarray(xy, float))
         self.params = tuple(f"shape_{k + 1}" for k in range(self.Q.shape[1]))

@@ -13,13 +13,20 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ..log import Log
-from ..simulate_floor import region_of
 from .base import Effect, register
 
 VAR_FLOOR = 1e-8
 GRID = (3, 2)                # regions along x and y
 PAD = 0.3                    # m: the default floor reaches this far beyond the outermost landmarks
 MIN_SEGMENTS = 30            # fewer motion segments in a region leave its k's where they were
+
+
+def region_of(xy: np.ndarray, size, grid) -> np.ndarray:
+    """Region id of each (x, y): row-major cells of the grid, clipped to the map."""
+    xy = np.atleast_2d(xy)
+    i = np.clip((xy[:, 0] / size[0] * grid[0]).astype(int), 0, grid[0] - 1)
+    j = np.clip((xy[:, 1] / size[1] * grid[1]).astype(int), 0, grid[1] - 1)
+    return j * grid[0] + i
 
 
 def variances(k: np.ndarray, r: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

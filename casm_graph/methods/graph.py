@@ -51,7 +51,7 @@ def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0,
     slowly from a loose start because the trajectory follows whatever freedom it is given.
     """
     A, e, groups = problem.jacobian(st)
-    traces = noise.hat_traces(A, groups, seed=seed)
+    traces = noise.hat_traces(A, groups, seed=seed, order=problem.column_order())
     new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) ** relax
            for k, rows in groups.items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]

@@ -22,13 +22,14 @@
 """
 from __future__ import annotations
 
-import json
+import multiprocessing
 import os
 import pickle
+import signal
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy import stats
@@ -39,12 +40,12 @@ from .effects import REGISTRY
 from .effects.base import held
 from .log import Log, LogError
 from .model import Model
-from .residuals import CATEGORICAL, Channel, channels
+from .output import atomic_dir, json_text
+from .residuals import CATEGORICAL, Channel, channels, ljung_box
 
 SCHEMA = "casm-graph/diagnosis/1"
 BINS = 10
 MIN_PER_BIN = 20
-LJUNG_BOX_LAGS = 20
 FOLDS = 3
 # The evidence a verdict needs (calibrated on effect-free simulated logs, see BENCHMARKS.md):
 BIC_SUPPORT = -10.0          # delta BIC at most this (strong evidence on Kass and Raftery's scale)
@@ -59,18 +60,6 @@ FOLD_TOL = 1e-5              # relative cost change that ends a fold fit (about 
 
 
 # --------------------------------------------------------------------------- statistics
-def ljung_box(r: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> float:
-    """p-value of the Ljung-Box test that the series ``r`` is white."""
-    r = np.asarray(r, float) - np.mean(r)
-    n = len(r)
-    if n <= lags + 1:
-        return float("nan")
-    den = np.sum(r * r)
-    rho = np.array([np.sum(r[k:] * r[:-k]) / den for k in range(1, lags + 1)])
-    q = n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, lags + 1)))
-    return float(stats.chi2.sf(q, lags))
-
-
 def _inflation(r_time_ordered: np.ndarray) -> float:
     """Variance inflation (1 + rho) / (1 - rho) of means of an AR(1) series with lag-one correlation rho >= 0."""
     r = r_time_ordered - r_time_ordered.mean()
@@ -265,19 +254,45 @@ def _heldout_task(args):
     return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects])
 
 
-def _parallel(fn, tasks: list, workers: int, progress=None) -> list:
-    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled)."""
+def _worker_signals():
+    """Workers leave interrupts to the parent (which terminates them) and die quietly on SIGTERM."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list:
+    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled),
+    or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
+
+    On any exception or signal the workers are terminated (the cluster's tasks cancelled) before it
+    propagates, so none outlive the caller."""
+    if client is not None and len(tasks) > 1:
+        futures = client.map(fn, tasks, pure=False)
+        try:
+            results = []
+            for f in futures:
+                results.append(f.result())
+                if progress is not None:
+                    progress.step(1)
+            return results
+        except BaseException:
+            client.cancel(futures)
+            raise
     results = []
     if workers > 1 and len(tasks) > 1:
+        pool = multiprocessing.Pool(min(workers, len(tasks)), initializer=_worker_signals)
         try:
-            with ProcessPoolExecutor(max_workers=workers) as ex:
-                for r in ex.map(fn, tasks):
-                    results.append(r)
-                    if progress is not None:
-                        progress.step(1)
+            for r in pool.imap(fn, tasks):
+                results.append(r)
+                if progress is not None:
+                    progress.step(1)
+            pool.close()
+            pool.join()
             return results
         except (AttributeError, TypeError, pickle.PicklingError):
             results = []
+        finally:
+            pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
     for t in tasks:
         results.append(fn(t))
         if progress is not None:
@@ -347,6 +362,8 @@ class Diagnosis:
     residuals: dict
     seconds: float
     skipped: dict
+    log: Log | None = None           # the log diagnosed (its report needs it)
+    write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
 
     def to_json(self) -> dict:
         return {"schema": SCHEMA, "channels": self.channels,
@@ -355,24 +372,21 @@ class Diagnosis:
                 "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
                 "seconds": round(self.seconds, 2)}
 
-    def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(_clean(self.to_json()), indent=2))
+    def summary(self) -> str:
+        """The verdict and the reasons, as ``casm-graph diagnose`` prints them."""
+        return "\n".join([f"verdict: {self.verdict}  ({self.seconds:.0f} s)", *("  " + w for w in self.words)])
 
-
-def _clean(x):
-    if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    if isinstance(x, np.floating):
-        return _clean(float(x))
-    return x
+    def save(self, out, force: bool = False) -> Path:
+        """Write DIAG (diagnosis.json, report.html) all or nothing; ``out`` must be new or empty."""
+        with atomic_dir(out, force=force, inputs=[self.log.source] if self.log.source else []) as tmp:
+            (tmp / "diagnosis.json").write_text(json_text(self.to_json()))
+            if self.write_report is not None:
+                self.write_report(tmp / "report.html", self.log, self)
+        return Path(out)
 
 
 def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
-             progress=None, candidates=None) -> Diagnosis:
+             progress=None, candidates=None, client=None) -> Diagnosis:
     """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
 
     ``extra_effects``: user effect classes to consider besides the catalog.
@@ -410,7 +424,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     wire = (lambda cls: cls.name if REGISTRY.get(cls.name) is cls else cls)
     if progress is not None:
         progress.stage("candidates", len(todo), unit="effects")
-    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls)) for cls in todo], workers, progress)
+    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls)) for cls in todo], workers, progress, client)
     cands = [c for c, _, _ in fitted]
     # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
     # the verdict, and the folds are most of the cost
@@ -421,7 +435,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
         present_wire = [wire(type(e)) for e in base.effects]
         held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire)]
                          + [(log, m, p, present_wire + [wire(cls)]) for _, m, p, cls in promising],
-                         workers, progress)
+                         workers, progress, client)
         for (c, _, _, _), h in zip(promising, held[1:]):
             c.heldout_nll_drop = float(h - held[0])
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))

@@ -1,0 +1,57 @@
+"""One robust loss for sightings, used by every stage: Huber weights, a gate, a robust scale and a robust curve fit.
+
+A single wild reading must not drag a least-squares step: whitened sighting residuals count
+quadratically up to ``HUBER`` sigmas and linearly beyond (iteratively reweighted), residuals beyond
+``GATE`` sigmas of a robust scale are set aside from the noise estimates, and the sensor curve's
+first fit is a Huber regression (scipy's ``least_squares`` with ``loss="huber"``) at a scale taken
+from the median absolute deviation.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import least_squares
+
+HUBER = 2.0          # sigmas: quadratic inside, linear beyond
+GATE = 5.0           # sigmas of a robust scale: beyond this a sighting is set aside from noise estimates
+# E[min(z^2, HUBER |z|)] for a standard normal z, which works out to P(|z| <= HUBER): the Huber-weighted sum
+# of squares of Gaussian residuals is this fraction of the plain one, so noise estimates from it divide by it.
+HUBER_EFFICIENCY = float(2 * stats.norm.cdf(HUBER) - 1)
+
+
+def huber(e: np.ndarray, k: float = HUBER) -> np.ndarray:
+    """Square-root weights that turn whitened residuals into Huber's (linear beyond ``k`` sigmas)."""
+    a = np.abs(e)
+    return np.sqrt(np.where(a > k, k / np.maximum(a, 1e-300), 1.0))
+
+
+def mad_scale(x: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation of the finite entries (the Gaussian sigma, outliers aside)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if not len(x):
+        return 1.0
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) or 1.0
+
+
+def inliers(z: np.ndarray, gate: float = GATE) -> np.ndarray:
+    """Mask of whitened residuals within ``gate`` robust sigmas (NaN counts as out)."""
+    z = np.asarray(z, float)
+    return np.isfinite(z) & (np.abs(z) <= gate * max(mad_scale(z), 1e-12))
+
+
+def polyfit(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
+    """Polynomial coefficients (lowest power first) of a Huber regression of ``y`` on ``x``.
+
+    Starts from the least-squares fit of the points within the gate of a median-centred scale, so a
+    reading thousands of times off has no say in the start either."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    keep = np.abs(y - np.median(y)) <= GATE * 3 * mad_scale(y) + 1e-12
+    if keep.sum() <= degree:
+        keep = np.ones(len(y), bool)
+    c0 = np.polynomial.polynomial.polyfit(x[keep], y[keep], degree)
+    scale = mad_scale(y[keep] - np.polynomial.polynomial.polyval(x[keep], c0))
+    V = np.vander(x, degree + 1, increasing=True)
+    res = least_squares(lambda c: V @ c - y, c0, jac=lambda c: V, loss="huber", f_scale=HUBER * scale,
+                        x_scale="jac", method="trf")
+    return res.x

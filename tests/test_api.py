@@ -1,0 +1,181 @@
+"""The public Python API (docs/log-format.md, "Python API") and the all-or-nothing output rules.
+
+In memory first: ``cg.calibrate`` writes nothing; ``save`` writes what the command line writes, into a
+new or empty directory only, completely or not at all; importing the package leaves matplotlib alone.
+"""
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import casm_graph as cg
+from casm_graph.cli import main
+from casm_graph.simulate import SimConfig, simulate, write
+
+
+class HeadingSlip(cg.Effect):
+    """Carpet pile: walking with the pile (+x) is faster than against it (the README's own effect)."""
+    name = "heading_slip"
+    channel = "motion"
+    params = ("k",)
+    start, scale = (0.0,), (0.05,)
+    explains = (("forward", "heading"),)
+    physics = "The carpet pile runs along x: forward speed scales by 1 + k cos(heading)."
+
+    def velocity(self, theta, v, ctx):
+        return v * (1.0 + theta[0] * np.cos(ctx["pose"][:, 2]))[:, None]
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("api") / "log"
+    log, truth = simulate(SimConfig(minutes=3, seed=1))
+    write(log, truth, d)
+    return d
+
+
+@pytest.fixture(scope="module")
+def cal(bundle):
+    return cg.calibrate(cg.load_log(bundle))
+
+
+def test_import_leaves_matplotlib_backend_alone():
+    code = ("import importlib, pkgutil, matplotlib\n"
+            "import casm_graph\n"
+            "for m in pkgutil.walk_packages(casm_graph.__path__, 'casm_graph.'):\n"
+            "    importlib.import_module(m.name)\n"
+            "print(matplotlib.get_backend())\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env={**os.environ, "MPLBACKEND": "svg"})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "svg"
+
+
+def test_public_names():
+    for name in cg.__all__:
+        assert hasattr(cg, name), name
+    assert callable(cg.calibrate) and callable(cg.diagnose) and callable(cg.uncertainty)
+
+
+def test_calibrate_in_memory_then_save_as_the_command_does(bundle, cal, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert list(tmp_path.iterdir()) == []                      # calibrate wrote nothing
+    assert cal.model.fit["converged"]
+    assert cal.trajectory.dtype.names == ("t", "x", "y", "theta", "sx", "sy", "stheta")
+    assert len(cal.trajectory) == cal.log.steps + 1 and np.isfinite(cal.trajectory["sx"]).all()
+    text = cal.summary()
+    assert "reading sigma" in text and "bearing sigma" in text and "converged" in text
+    cal.save(tmp_path / "run")
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["model.json", "report.html", "trajectory.csv"]
+    m = json.loads((tmp_path / "run" / "model.json").read_text())
+    assert m["fit"]["options"] == {"method": "graph", "sensor_degree": 3, "seed": 0, "effects": [], "regions": None}
+    assert m["fit"]["log"] == str(bundle) and m["fit"]["version"]
+    assert main(["calibrate", str(bundle), "--out", str(tmp_path / "cli"), "--quiet"]) == 0
+    c = json.loads((tmp_path / "cli" / "model.json").read_text())
+    assert c["action_model"] == m["action_model"] and c["sensor_model"] == m["sensor_model"]
+    assert c["fit"]["command"].startswith("casm-graph calibrate")
+
+
+def test_save_refuses_a_nonempty_directory_unless_forced(cal, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep me")
+    with pytest.raises(cg.LogError, match="not empty"):
+        cal.save(out)
+    assert (out / "mine.txt").read_text() == "keep me"
+    cal.save(out, force=True)
+    assert sorted(p.name for p in out.iterdir()) == ["model.json", "report.html", "trajectory.csv"]
+    with pytest.raises(cg.LogError, match="input"):
+        cal.save(cal.log.source, force=True)                     # never over the log itself
+    with pytest.raises(cg.LogError):
+        cal.save("")
+
+
+def test_a_failure_while_writing_leaves_nothing(cal, tmp_path):
+    def broken(path, c):
+        path.write_text("<html>half")
+        raise OSError("No space left on device")
+    bad = cg.Calibration(log=cal.log, model=cal.model, trajectory=cal.trajectory, options=cal.options,
+                         fit=cal.fit, write_report=broken)
+    with pytest.raises(OSError):
+        bad.save(tmp_path / "run")
+    assert list(tmp_path.iterdir()) == []                        # neither the run nor its temporary sibling
+
+
+def test_json_is_strict(cal, tmp_path):
+    nan_model = cal.model.with_(fit={**cal.model.fit, "log_likelihood": float("nan")})
+    cg.Calibration(log=cal.log, model=nan_model, trajectory=cal.trajectory, options=cal.options).save(tmp_path / "r")
+    text = (tmp_path / "r" / "model.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text)["fit"]["log_likelihood"] is None
+
+
+def test_user_effect_through_calibrate(bundle, cal):
+    log = cg.load_log(bundle)
+    with_slip = cg.calibrate(log, effects=[HeadingSlip])
+    assert "heading_slip" in with_slip.model.effects
+    assert np.isfinite(with_slip.model.effects["heading_slip"]["k"])
+    assert with_slip.model_json["fit"]["options"]["effects"] == ["heading_slip"]
+
+
+def test_diagnose_and_uncertainty_from_a_calibration(bundle, cal, tmp_path):
+    log = cg.load_log(bundle)
+    diag = cg.diagnose(log, cal, candidates=["battery_fade"], workers=1)
+    assert diag.verdict in {"none", "battery_fade"} or diag.verdict.startswith("unexplained:")
+    assert diag.summary().startswith("verdict:")
+    diag.save(tmp_path / "diag")
+    assert json.loads((tmp_path / "diag" / "diagnosis.json").read_text())["verdict"] == diag.verdict
+    post = cg.uncertainty(log, cal, walkers=12, max_steps=60, seed=1)
+    assert set(post.intervals) >= {"reading_sigma", "bearing_sigma"}
+    post.save(tmp_path / "unc")
+    assert {"posterior.json", "model.json", "corner.png", "trace.png", "report.html"} <= \
+        {p.name for p in (tmp_path / "unc").iterdir()}
+
+
+def test_unusable_out_is_refused_before_any_work(bundle, tmp_path, capsys):
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    t0 = time.perf_counter()
+    assert main(["calibrate", str(bundle), "--out", str(f), "--quiet"]) == 2
+    assert main(["calibrate", str(bundle), "--out", "", "--quiet"]) == 2
+    assert main(["uncertainty", str(bundle), "--model", str(tmp_path / "nope" / "model.json"),
+                 "--out", str(tmp_path / "nope")]) == 2
+    assert time.perf_counter() - t0 < 30                         # refused at once, not after a fit
+    err = capsys.readouterr().err
+    assert "not a directory" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("command", ["calibrate", "diagnose"])
+def test_a_signal_at_a_random_moment_leaves_out_absent_or_complete(bundle, tmp_path, command):
+    """SIGTERM at random moments: --out is absent or complete, no temporary sibling, no worker left running."""
+    psutil = pytest.importorskip("psutil")
+    run = tmp_path / "base"
+    assert main(["calibrate", str(bundle), "--out", str(run), "--quiet"]) == 0
+    rng = random.Random(7 if command == "calibrate" else 8)
+    expected = {"calibrate": {"model.json", "trajectory.csv", "report.html"},
+                "diagnose": {"diagnosis.json", "report.html"}}[command]
+    for trial in range(3):
+        out = tmp_path / f"{command}{trial}"
+        args = [command, str(bundle), "--out", str(out), "--quiet"]
+        if command == "diagnose":
+            args += ["--model", str(run / "model.json"), "--candidate", "battery_fade", "--candidate", "actuator_lag"]
+        p = subprocess.Popen([sys.executable, "-m", "casm_graph.cli", *args], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        time.sleep(rng.uniform(1.5, 12.0))
+        children = [c.pid for c in psutil.Process(p.pid).children(recursive=True)] if p.poll() is None else []
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+        assert "Traceback" not in err
+        if out.exists():
+            assert {q.name for q in out.iterdir()} == expected
+        else:
+            assert p.returncode == 1 and "nothing written" in err
+        assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []
+        time.sleep(0.5)
+        assert not [c for c in children if psutil.pid_exists(c) and psutil.Process(c).status() != "zombie"]
