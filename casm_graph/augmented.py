@@ -25,6 +25,7 @@ from . import graph as G
 from . import noise as noisemod
 from .effects import Effect
 from .effects import get as get_effect
+from .effects.false_detections import inlier_weights, outlier_density
 from .log import Log, wrap
 from .model import Model
 
@@ -403,15 +404,8 @@ class EffectProblem:
         lr = np.where(np.isfinite(rr), -0.5 * (rr / sr) ** 2 - np.log(sr) - 0.5 * np.log(2 * np.pi), 0.0)
         lb = np.where(np.isfinite(rb), -0.5 * (rb / self.bearing_sigma) ** 2 - np.log(self.bearing_sigma)
                       - 0.5 * np.log(2 * np.pi), 0.0)
-        eps = self.outlier_fraction(st.theta)
-        lin = lr + lb
-        if eps > 0:
-            lout = (np.where(np.isfinite(rr), -np.log(self.reading_span), 0.0)
-                    + np.where(np.isfinite(rb), -np.log(2 * np.pi), 0.0))
-            lmix = np.logaddexp(np.log1p(-eps) + lin, np.log(eps) + lout)
-            weight = np.exp(np.log1p(-eps) + lin - lmix)
-        else:
-            lmix, weight = lin, np.ones_like(lin)
+        weight, lmix = inlier_weights(lr + lb, outlier_density(rr, rb, self.reading_span),
+                                      self.outlier_fraction(st.theta))
         return {"reading": rr, "bearing": rb, "distance": d, "scale": scale, "log_density": lmix,
                 "weight": weight}
 
@@ -445,10 +439,7 @@ def estimate_noise(problem: EffectProblem, st: AState, model: Model, seed: int =
     traces = noisemod.hat_traces(A, groups, seed=seed)
     wsum = {"reading": float(np.sum(problem.weight[problem.r_idx])),
             "bearing": float(np.sum(problem.weight[problem.b_idx]))}
-    new = {}
-    for k, rows in groups.items():
-        n = wsum.get(k, len(rows))
-        new[k] = noisemod.rescale(1.0, float(np.sum(e[rows] ** 2)), max(int(round(n)), 1), traces[k])
+    new = noisemod.group_scales(e, groups, traces, counts=wsum)
     m = model.with_(motion_noise=np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]],
                     reading_sigma=model.reading_sigma * new["reading"],
                     bearing_sigma=model.bearing_sigma * new["bearing"])

@@ -31,7 +31,9 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     t0 = time.perf_counter()
     if progress is not None:
         progress.stage("effects", effect_fit.ROUNDS)
-    ef = effect_fit.fit(log, fit.model, fit.poses, effects, seed=seed,
+    keep = np.ones(len(log.obs_t), bool)           # the base fit's outliers stay out, as they did there
+    keep[np.asarray(fit.notes.get("outliers_pruned", []), int)] = False
+    ef = effect_fit.fit(log, fit.model, fit.poses, effects, seed=seed, obs_mask=keep,
                         on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
     cov_p, cov_t = augmented.marginals(ef.problem, ef.state)
     A, D = ef.problem.A, ef.problem.D
@@ -94,7 +96,9 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
             if why:
                 raise LogError(f"effect {cls.name!r} cannot be fitted on {log.source or 'this log'}: {why}")
         start = paper_start(log, options.sensor_degree)
-        fit = METHODS[options.method](log, start, seed=options.seed, progress=progress)
+        mixture = options.method == "graph" and any(cls.name == "false_detections" for cls in classes)
+        fit = METHODS[options.method](log, start, seed=options.seed, progress=progress,
+                                      **({"mixture": True} if mixture else {}))
         if classes:
             fit = with_effects(log, fit, classes, seed=options.seed, progress=progress)
         truth = read_truth_model(log.source)

@@ -12,7 +12,7 @@ The start is global, as for the action table (:mod:`casm_graph.initialise`):
    imply, by a grid search over its offset and gain (summed resultant lengths of 10 s windows);
 3. with headings fixed, positions are linear in the speed-map coefficients: least squares.
 Then a coarse graph (1 s knots) is optimised in rounds that re-estimate every noise level and set
-aside sightings more than ``GATE`` sigmas off, its first rounds with the nominal maps and the
+aside sightings more than ``robust.GATE`` sigmas off, its first rounds with the nominal maps and the
 polynomial held (the sightings place the poses before the maps may move), and a finer graph
 (0.25 s knots) finishes.
 """
@@ -30,7 +30,7 @@ from gtsam.symbol_shorthand import C, M, X
 import factors
 
 from . import graph as G
-from . import noise
+from . import noise, robust
 from .command_model import CommandModel, for_commands
 from .effects import regional_motion_noise as RMN
 from .initialise import locate
@@ -43,8 +43,6 @@ from .solve import marginals as gaussian_marginals
 
 PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the command scale
 POLY_PRIOR_SIGMA = 1e4
-GATE = 5.0                   # whitened residual beyond which a sighting is set aside (re-decided each round)
-HUBER = 2.0                  # sightings count quadratically up to this many sigmas, linearly beyond
 MIN_SIGHTINGS = 10
 MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is numerical, not physical (a robot that never
                              # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
@@ -105,12 +103,6 @@ class State:
     poly: np.ndarray         # (D+1,)
 
 
-def huber(e: np.ndarray, k: float = HUBER) -> np.ndarray:
-    """Square-root weights that turn whitened residuals into Huber's (linear beyond ``k`` sigmas)."""
-    a = np.abs(e)
-    return np.sqrt(np.where(a > k, k / np.maximum(a, 1e-300), 1.0))
-
-
 class Problem:
     """The graph of one continuous-command log under fixed noise levels, linearised in numpy.
 
@@ -166,11 +158,11 @@ class Problem:
             J = [sc[:, :, None] * J[0] + (2 * self.lens_k * f * ia)[:, :, None] * Jia[0], sc[:, :, None] * J[1]]
             e = sc * f - self.r_z[:, None]
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
-        w = huber(re)
+        w = robust.huber(re)
         re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
-        w = huber(be)
+        w = robust.huber(be)
         be, bJ = be * w, bJ * w[:, None]
         pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
         return ae, aJ, re, rJ, be, bJ, pe
@@ -266,7 +258,7 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     lu = noise.information_lu(A, np.arange(A.shape[1]))   # poses in time order, parameters last: little fill,
                                                           # where minimum degree costs time quadratic in the poses
     traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
-    new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) for k, rows in groups.items()}
+    new = noise.group_scales(e, groups, traces, huber=("reading", "bearing"))
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
     m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
     m = np.maximum(m, MIN_MOTION_SIGMA)
@@ -308,7 +300,7 @@ def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model) -> dict
             "bearing_residual": wrap(log.obs_bearing - bearing)}
 
 
-def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = GATE) -> tuple[np.ndarray, np.ndarray]:
+def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GATE) -> tuple[np.ndarray, np.ndarray]:
     """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
     res = sighting_residuals(log, poses_at_obs, model)
     r = np.abs(res["reading"]) / model.reading_sigma

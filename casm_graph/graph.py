@@ -16,6 +16,7 @@ from gtsam.symbol_shorthand import C, V, X
 
 import factors
 
+from . import robust
 from .log import Log, nearest_index, wrap
 from .model import Model
 
@@ -111,10 +112,11 @@ class Rows:
 class Problem:
     """The graph of one log under fixed noise levels, evaluated and linearised in numpy.
 
-    Holds the fixed data (layout, measurements, sigmas); the variables travel as a :class:`State`.
+    Holds the fixed data (layout, measurements, sigmas, and the sightings' inlier ``weight`` of a
+    false-detection mixture when one is fitted); the variables travel as a :class:`State`.
     """
 
-    def __init__(self, log: Log, lay: Layout, model: Model):
+    def __init__(self, log: Log, lay: Layout, model: Model, weight: np.ndarray | None = None):
         self.log, self.lay = log, lay
         self.motion_sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(lay.seg_steps)[:, None]
         lm = log.landmark_xy[log.landmark_index]
@@ -124,6 +126,9 @@ class Problem:
         self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
         self.n_poly = len(model.reading_poly)
+        w = np.ones(len(log.obs_t)) if weight is None else np.asarray(weight, float)
+        self.r_w, self.b_w = np.sqrt(w[r]), np.sqrt(w[b])
+        self.counts = {"reading": float(np.sum(w[r])), "bearing": float(np.sum(w[b]))}
 
     def rows(self, st: State, jacobians: bool = True) -> Rows:
         lay = self.lay
@@ -133,8 +138,12 @@ class Problem:
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
+        w = robust.huber(re) * self.r_w       # a wild sighting pulls like one HUBER sigmas off, no more
+        re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
+        w = robust.huber(be) * self.b_w
+        be, bJ = be * w, bJ * w[:, None]
         pe = np.concatenate([st.velocities.ravel() / VELOCITY_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
         return Rows(ae, aJ, re, rJ, be, bJ, pe)
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from . import robust
 from .log import Log, wrap
 from .model import Model
 
@@ -237,7 +238,7 @@ def locate(log: Log, obs_knot: np.ndarray, n_knots: int, dt_k: float, c_knot: np
     lm = log.landmark_xy[lm_idx]
     for _ in range(2):
         d_obs = np.hypot(*(mean[obs_knot] - lm).T)
-        poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, degree)
+        poly = robust.polyfit(d_obs[has_r], reading, degree)
         res = reading - np.polynomial.polynomial.polyval(d_obs[has_r], poly)
         s = 1.4826 * np.median(np.abs(res)) + 1e-9
         lo, hi = np.percentile(d_obs[has_r], [1, 99])
@@ -245,7 +246,7 @@ def locate(log: Log, obs_knot: np.ndarray, n_knots: int, dt_k: float, c_knot: np
                    np.polynomial.polynomial.polyval(np.clip(d, lo, hi), poly))
         mean, ev = _smooth(grid, *args, predict, lambda r, s=s: 2.0 * s, n_knots, blur)
     d_obs = np.hypot(*(mean[obs_knot] - lm).T)
-    poly = np.polynomial.polynomial.polyfit(d_obs[has_r], reading, degree)
+    poly = robust.polyfit(d_obs[has_r], reading, degree)
     return Located(mean, poly, res, (p, k), float(ev))
 
 

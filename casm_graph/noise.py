@@ -11,6 +11,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+from . import robust
+
 
 class _Permuted:
     """A factorisation of P^T H P answering ``solve`` for H itself."""
@@ -64,6 +66,29 @@ def hat_traces(A: sp.csr_matrix, groups: dict[str, np.ndarray], probes: int = 24
         Z = rng.choice([-1.0, 1.0], size=(len(rows), probes))
         U = np.asarray(A[rows].T @ Z)
         out[name] = float(np.einsum("ij,ij->j", U, lu.solve(U)).mean())
+    return out
+
+
+def group_scales(e: np.ndarray, groups: dict[str, np.ndarray], traces: dict[str, float],
+                 counts: dict[str, float] | None = None, huber: tuple[str, ...] = ()) -> dict[str, float]:
+    """Factor by which each group's sigma should change, from its whitened residuals ``e`` at the optimum.
+
+    Groups named in ``huber`` carry Huber-weighted residuals (:mod:`casm_graph.robust`): their rows
+    beyond the gate are set aside (with their share of the hat trace) and the sum of squares is
+    divided by the Huber weighting's Gaussian efficiency, so a clean log gets the plain estimate and a
+    wild sighting does not inflate it. ``counts`` overrides a group's row count (mixture weights).
+    """
+    out = {}
+    for name, rows in groups.items():
+        r = e[rows]
+        n, trace = (counts or {}).get(name, len(rows)), traces[name]
+        rss = float(np.sum(r ** 2))
+        if name in huber and len(r):
+            keep = np.abs(r) <= np.sqrt(robust.HUBER * robust.GATE)      # |z| <= GATE, in Huber-weighted units
+            trace *= keep.sum() / len(r)
+            n = n * keep.sum() / len(r)
+            rss = float(np.sum(r[keep] ** 2)) / robust.HUBER_EFFICIENCY
+        out[name] = rescale(1.0, rss, max(int(round(n)), 1), trace)
     return out
 
 

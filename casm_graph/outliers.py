@@ -16,24 +16,17 @@ import numpy as np
 from scipy.stats import chi2
 
 from .log import Log
+from .robust import mad_scale
 from .model import Model
 from .residuals import observation
 
 TAIL = 1e-5
 
 
-def robust_scale(x: np.ndarray) -> float:
-    """1.4826 x the median absolute deviation of the finite entries (the Gaussian sigma, outliers aside)."""
-    x = x[np.isfinite(x)]
-    if not len(x):
-        return 1.0
-    return float(1.4826 * np.median(np.abs(x - np.median(x)))) or 1.0
-
-
 def outlying(log: Log, model: Model, poses: np.ndarray, tail: float = TAIL) -> np.ndarray:
     """Boolean mask of sightings whose whitened squared residual exceeds chi-square's ``1 - tail`` quantile."""
     r, b = observation(poses[log.obs_step], log, model)
-    zr, zb = r / robust_scale(r), b / robust_scale(b)
+    zr, zb = r / mad_scale(r), b / mad_scale(b)
     m2 = np.nan_to_num(zr ** 2) + np.nan_to_num(zb ** 2)
     dof = np.isfinite(zr).astype(int) + np.isfinite(zb).astype(int)
     limit = chi2.isf(tail, np.maximum(dof, 1))

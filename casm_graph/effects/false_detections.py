@@ -6,6 +6,22 @@ import numpy as np
 from .base import Effect, register
 
 
+def inlier_weights(log_inlier: np.ndarray, log_outlier: np.ndarray, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each sighting's posterior probability of being a true detection, and its mixture log density, from
+    its log density as a true sighting and as a false one (uniform over the readings and bearings)."""
+    if fraction <= 0:
+        return np.ones_like(log_inlier), log_inlier
+    mix = np.logaddexp(np.log1p(-fraction) + log_inlier, np.log(fraction) + log_outlier)
+    return np.exp(np.log1p(-fraction) + log_inlier - mix), mix
+
+
+def outlier_density(reading: np.ndarray, bearing: np.ndarray, reading_span: float) -> np.ndarray:
+    """Log density of a false sighting: uniform over the span of readings and over all bearings (0 where
+    a component was not measured)."""
+    return (np.where(np.isfinite(reading), -np.log(reading_span), 0.0)
+            + np.where(np.isfinite(bearing), -np.log(2 * np.pi), 0.0))
+
+
 @register
 class FalseDetections(Effect):
     name = "false_detections"

@@ -21,12 +21,15 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import C, V, X
+from scipy.stats import norm
 
 from .. import graph as G
 from .. import noise
 from ..initialise import initialise
 from ..outliers import outlying, prune
+from ..residuals import observation
 from ..turns import realias
+from ..effects.false_detections import FalseDetections, inlier_weights, outlier_density
 from ..log import Log
 from ..model import Model
 from ..solve import least_squares
@@ -52,8 +55,8 @@ def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0,
     """
     A, e, groups = problem.jacobian(st)
     traces = noise.hat_traces(A, groups, seed=seed, order=problem.column_order())
-    new = {k: noise.rescale(1.0, float(np.sum(e[rows] ** 2)), len(rows), traces[k]) ** relax
-           for k, rows in groups.items()}
+    new = {k: v ** relax for k, v in noise.group_scales(e, groups, traces, counts=problem.counts,
+                                                         huber=("reading", "bearing")).items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
     return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
                        bearing_sigma=model.bearing_sigma * new["bearing"])
@@ -75,8 +78,19 @@ def log_likelihood(cost: float, lay: G.Layout, log: Log, model: Model) -> float:
     return float(-cost - log_det - 0.5 * n * np.log(2 * np.pi))
 
 
-def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress):
-    problem = G.Problem(log, lay, model)
+def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: float) -> tuple[np.ndarray, float]:
+    """Every sighting's inlier weight under the false-detection mixture at ``fraction`` (the effect's own
+    formula), and the fraction's EM update: how ``--effect false_detections`` acts from the first round."""
+    r, b = observation(poses_at_obs, log, model)
+    lin = (np.where(np.isfinite(r), norm.logpdf(r, scale=model.reading_sigma), 0.0)
+           + np.where(np.isfinite(b), norm.logpdf(b, scale=model.bearing_sigma), 0.0))
+    finite = log.obs_reading[np.isfinite(log.obs_reading)]
+    w, _ = inlier_weights(lin, outlier_density(r, b, float(np.ptp(finite)) if len(finite) else 1.0), fraction)
+    return w, float(np.clip(np.mean(1.0 - w), 1e-4, 0.5))
+
+
+def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress, weight=None):
+    problem = G.Problem(log, lay, model, weight)
 
     def tick(c):
         cost.append(c)
@@ -107,10 +121,13 @@ class Coarse:
     iterations: int
     realiased: list
     init: object
+    fraction: float = 0.0          # false-detection share (the mixture's, when fitted)
 
 
-def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None) -> Coarse:
-    """Stages 1-3 of the module docstring: global initialisation, then the coarse graph in rounds."""
+def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
+                 mixture: bool = False) -> Coarse:
+    """Stages 1-3 of the module docstring: global initialisation, then the coarse graph in rounds
+    (``mixture``: sightings weighted by the false-detection mixture, its share re-estimated each round)."""
     progress = progress or Progress()
     cost, stages, iterations = [], [], 0
     realiased: list[int] = []
@@ -120,10 +137,13 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
                              bearing_sigma=float(start.bearing_sigma))
     lay = G.layout(log, model, stride=COARSE_STRIDE)
     poses = init.poses[lay.knots]
+    fraction, weight = (FalseDetections.start[0] if mixture else 0.0), None
     progress.stage("coarse graph", COARSE_ROUNDS)
     for r in range(COARSE_ROUNDS):
+        if mixture:
+            weight, fraction = mixture_weights(log, poses[lay.obs_knot], model, fraction)
         problem, st, model, h = _optimise(log, lay, model, poses, COARSE_ITERATIONS, cost, stages,
-                                          "coarse", progress)
+                                          "coarse", progress, weight)
         iterations += h.iterations
         poses = st.poses
         model = estimate_noise(problem, st, model, seed=seed + r, relax=COARSE_RELAX)
@@ -131,16 +151,18 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
             model, poses, changed = realias(log, lay, model, poses)
             realiased.extend(changed)
         progress.step(1)
-    return Coarse(model, fill_in(log, model, lay, poses), cost, stages, iterations, realiased, init)
+    return Coarse(model, fill_in(log, model, lay, poses), cost, stages, iterations, realiased, init, fraction)
 
 
 @register("graph")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-        marginals: bool = True) -> Fit:
-    """Calibrate ``log`` from the paper's start ``start`` with the factor graph."""
+        marginals: bool = True, mixture: bool = False) -> Fit:
+    """Calibrate ``log`` from the paper's start ``start`` with the factor graph (``mixture``: with the
+    false-detection mixture in every round, as ``--effect false_detections`` asks)."""
     progress = progress or Progress()
     t0 = time.perf_counter()
-    co = coarse_start(log, start, seed, progress)
+    co = coarse_start(log, start, seed, progress, mixture)
+    fraction, weight = co.fraction, None
     model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
     realiased, init = co.realiased, co.init
     pruned = outlying(log, model, poses)
@@ -149,8 +171,10 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     full = G.layout(log, model, stride=1)
     progress.stage("full graph", FULL_ROUNDS)
     for r in range(FULL_ROUNDS):
+        if mixture:
+            weight, fraction = mixture_weights(log, poses[log.obs_step], model, fraction)
         problem, st, model, h = _optimise(log, full, model, poses, FULL_ITERATIONS, cost, stages,
-                                          "full", progress)
+                                          "full", progress, weight)
         iterations += h.iterations
         poses = st.poses
         if r < FULL_ROUNDS - 1:
@@ -183,7 +207,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                         fit={"method": "graph", "iterations": iterations,
                              "seconds": round(time.perf_counter() - t0, 3),
                              "log_likelihood": ll, "converged": bool(converged),
-                             "outliers_pruned": int(pruned.sum())})
+                             "outliers_pruned": int(pruned.sum())},
+                        effects={FalseDetections.name: {"fraction": fraction}} if mixture else {})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
