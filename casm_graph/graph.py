@@ -69,14 +69,15 @@ def build(log: Log, lay: Layout, model: Model, parts=("action", "reading", "bear
             noise = gtsam.noiseModel.Diagonal.Sigmas(base * np.sqrt(k))
             g.add(kind.build(noise, (X(i), X(i + 1), V(int(lay.seg_action[i]))), k, float(lay.seg_dt[i])))
     lm = log.landmark_xy[log.landmark_index]
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(robust.HUBER)
     if "reading" in parts:
         kind = factors.REGISTRY["reading"]
-        noise = gtsam.noiseModel.Isotropic.Sigma(1, model.reading_sigma)
+        noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(1, model.reading_sigma))
         for j in np.flatnonzero(~np.isnan(log.obs_reading)):
             g.add(kind.build(noise, (X(int(lay.obs_knot[j])), C(0)), lm[j], float(log.obs_reading[j])))
     if "bearing" in parts:
         kind = factors.REGISTRY["bearing"]
-        noise = gtsam.noiseModel.Isotropic.Sigma(1, model.bearing_sigma)
+        noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(1, model.bearing_sigma))
         for j in np.flatnonzero(~np.isnan(log.obs_bearing)):
             g.add(kind.build(noise, (X(int(lay.obs_knot[j])),), lm[j], float(log.obs_bearing[j])))
     vprior = gtsam.noiseModel.Isotropic.Sigma(3, VELOCITY_PRIOR_SIGMA)
@@ -107,6 +108,7 @@ class Rows:
     bearing_e: np.ndarray    # (Nb,)
     bearing_J: np.ndarray    # (Nb, 3)
     prior_e: np.ndarray      # (3A + D + 1,) velocity and polynomial priors
+    sighting_loss: float = 0.0   # sum of the sightings' Huber losses (times their inlier weights): their part of the cost
 
 
 class Problem:
@@ -138,20 +140,21 @@ class Problem:
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
+        loss = float(np.sum(self.r_w ** 2 * robust.huber_loss(re)))
         w = robust.huber(re) * self.r_w       # a wild sighting pulls like one HUBER sigmas off, no more
         re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
+        loss += float(np.sum(self.b_w ** 2 * robust.huber_loss(be)))
         w = robust.huber(be) * self.b_w
         be, bJ = be * w, bJ * w[:, None]
         pe = np.concatenate([st.velocities.ravel() / VELOCITY_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
-        return Rows(ae, aJ, re, rJ, be, bJ, pe)
+        return Rows(ae, aJ, re, rJ, be, bJ, pe, loss)
 
     def cost(self, st: State) -> float:
-        """GTSAM's error: half the sum of squared whitened residuals."""
-        r = self.rows(st)
-        return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.reading_e ** 2) + np.sum(r.bearing_e ** 2)
-                           + np.sum(r.prior_e ** 2))
+        """GTSAM's error: half the sum of squared whitened residuals, sightings through Huber's loss."""
+        r = self.rows(st, jacobians=False)
+        return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.prior_e ** 2)) + r.sighting_loss
 
     def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
         """Gauss-Newton system at ``st``: one factor per action segment and per knot with sightings.

@@ -25,6 +25,15 @@ def huber(e: np.ndarray, k: float = HUBER) -> np.ndarray:
     return np.sqrt(np.where(a > k, k / np.maximum(a, 1e-300), 1.0))
 
 
+def huber_loss(e: np.ndarray, k: float = HUBER) -> np.ndarray:
+    """Huber's rho of whitened residuals (GTSAM's ``mEstimator.Huber``): e^2 / 2 inside ``k``, k |e| - k^2 / 2 beyond.
+
+    The rows weighted by :func:`huber` give the gradient of the sum of these (IRLS), which is what a
+    least-squares step that reports this cost must use."""
+    a = np.abs(e)
+    return np.where(a > k, k * a - 0.5 * k * k, 0.5 * a * a)
+
+
 def mad_scale(x: np.ndarray) -> float:
     """1.4826 x the median absolute deviation of the finite entries (the Gaussian sigma, outliers aside)."""
     x = np.asarray(x, float)
