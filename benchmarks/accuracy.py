@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 
-from casm_graph.methods import METHODS, ekfs_em
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate, true_reading
+from casm_graph.fit.methods import METHODS, ekfs_em
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate, true_reading
 
 
 def main():

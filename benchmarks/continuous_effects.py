@@ -4,7 +4,7 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/continuous_effects.py --effect lens_distortion --values 0 -0.1 --seeds 0 1 2 3 4 5
 
 Per floor (simulate_floor, 4 minutes, 0.1 s steps, the effect at the given true value): the graph
-calibration, then :func:`casm_graph.continuous.profile`; prints the fitted value, the profile's
+calibration, then :func:`casm_graph.fit.continuous.profile`; prints the fitted value, the profile's
 log-likelihood gain and delta BIC (at most -10 counts as strong evidence, the diagnosis's threshold).
 """
 from __future__ import annotations
@@ -12,9 +12,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from casm_graph import continuous
-from casm_graph.diagnosis import BIC_SUPPORT
-from casm_graph.simulate_floor import FloorConfig, simulate
+from casm_graph.analysis.diagnosis import BIC_SUPPORT
+from casm_graph.fit import continuous
+from casm_graph.sim.floor import FloorConfig, simulate
 
 SWITCH = {"actuator_lag": "lag", "lens_distortion": "lens_k"}
 

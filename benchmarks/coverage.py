@@ -18,11 +18,11 @@ import warnings
 
 import numpy as np
 
-from casm_graph.methods import METHODS
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
-from casm_graph.uncertainty_report import true_table, true_values
-from casm_graph.uncertainty_run import compute
+from casm_graph.fit.methods import METHODS
+from casm_graph.models.model import paper_start
+from casm_graph.pipeline.uncertainty import compute
+from casm_graph.report.uncertainty import true_table, true_values
+from casm_graph.sim.aibo import SimConfig, simulate
 
 Z90 = 1.6448536269514722
 

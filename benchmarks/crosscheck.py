@@ -13,11 +13,11 @@ import itertools
 
 import numpy as np
 
-from casm_graph.hidden_effect import PAPER_SIM_RMS
-from casm_graph.methods import METHODS
-from casm_graph.methods.ekfs_em import velocity_errors
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
+from casm_graph.fit.methods import METHODS
+from casm_graph.fit.methods.ekfs_em import velocity_errors
+from casm_graph.models.model import paper_start
+from casm_graph.pipeline.hidden_effect import PAPER_SIM_RMS
+from casm_graph.sim.aibo import SimConfig, simulate
 
 NAMES = ("graph", "graph-em", "ekfs-em", "ekfs-em-learned")
 

@@ -1,7 +1,7 @@
 """Detection rates of ``diagnose``: hide each catalog effect at given strengths, diagnose, add, diagnose again.
 
 Each trial simulates a log, calibrates the base model, diagnoses it, adds the verdict with
-``calibrate --effect`` and diagnoses again (``casm_graph.hidden_effect``). One JSON line per
+``calibrate --effect`` and diagnoses again (``casm_graph.pipeline.hidden_effect``). One JSON line per
 trial goes to ``--out`` as it finishes, so a long run loses nothing; the table at the end is
 what BENCHMARKS.md records.
 
@@ -15,7 +15,7 @@ import math
 import tempfile
 from collections import defaultdict
 
-from casm_graph import hidden_effect
+from casm_graph.pipeline import hidden_effect
 
 MODERATE = {"actuator_lag": [0.3], "battery_fade": [0.02], "surface_friction": [0.15],
             "camera_latency": [0.1], "lens_distortion": [0.3], "range_dependent_noise": [0.5],

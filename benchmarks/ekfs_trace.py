@@ -10,9 +10,9 @@ import argparse
 
 import numpy as np
 
-from casm_graph.methods import ekfs_em
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
+from casm_graph.fit.methods import ekfs_em
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 def main():

@@ -1,6 +1,6 @@
 """Seconds per EKFS E-step on the 27,000-step log: our compiled filter vs filterpy, side by side.
 
-Ours: :func:`casm_graph.ekfs.forward` + ``backward`` + ``smooth`` (numba). filterpy has an
+Ours: :func:`casm_graph.fit.ekfs.forward` + ``backward`` + ``smooth`` (numba). filterpy has an
 ``ExtendedKalmanFilter`` for the forward pass and a linear RTS smoother (``rts_smoother``) fed with
 the per-step linearised F and Q; it has no backward information filter, so the comparison is
 forward pass + smoother in each. Also times one whole EKFS-EM iteration and one graph-EM iteration.
@@ -17,13 +17,13 @@ import time
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, rts_smoother
 
-from casm_graph import ekfs
-from casm_graph import graph as G
-from casm_graph.methods import METHODS
-from casm_graph.methods.ekfs_em import _observations
-from casm_graph.methods.graph_em import em_map
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
+from casm_graph.fit import ekfs
+from casm_graph.fit.methods import METHODS
+from casm_graph.fit.methods.ekfs_em import _observations
+from casm_graph.fit.methods.graph_em import em_map
+from casm_graph.graph import table as G
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 def setup(minutes):

@@ -26,8 +26,8 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from casm_graph.fleet import calibrate_fleet, client_for
-from casm_graph.simulate_fleet import simulate_fleet
+from casm_graph.pipeline.fleet import calibrate_fleet, client_for
+from casm_graph.sim.fleet import simulate_fleet
 
 
 def overhead(workers: int, tasks: int = 400) -> tuple[float, float]:

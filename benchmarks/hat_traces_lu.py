@@ -15,8 +15,8 @@ import time
 import numpy as np
 from scipy.sparse.linalg import splu
 
-from casm_graph import continuous as CT
-from casm_graph.simulate_floor import FloorConfig, simulate
+from casm_graph.fit import continuous as CT
+from casm_graph.sim.floor import FloorConfig, simulate
 
 
 def timed(f, repeats):

@@ -15,10 +15,12 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from casm_graph import calibrate_run, diagnosis, effect_fit
-from casm_graph.effects import REGISTRY
-from casm_graph.log import load
-from casm_graph.simulate import SimConfig, simulate, write
+from casm_graph.analysis import diagnosis
+from casm_graph.fit import effect_fit
+from casm_graph.io.log import load
+from casm_graph.models.effects import REGISTRY
+from casm_graph.pipeline import calibrate as calibrate_run
+from casm_graph.sim.aibo import SimConfig, simulate, write
 
 
 def main():

@@ -13,9 +13,9 @@ import argparse
 
 import numpy as np
 
-from casm_graph import mcl
-from casm_graph.simulate_floor import FloorConfig, region_of, step
-from casm_graph.simulate_floor import simulate as simfloor
+from casm_graph.baselines import mcl
+from casm_graph.sim.floor import FloorConfig, region_of, step
+from casm_graph.sim.floor import simulate as simfloor
 
 
 def run(drive, size, grid, kind: str, lag: int = 10, particles: int = 500, window: int = 300, refit_every: int = 25,

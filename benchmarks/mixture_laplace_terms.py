@@ -14,8 +14,10 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from casm_graph import calibrate_run, diagnosis, effect_fit
-from casm_graph.simulate import SimConfig, simulate, write
+from casm_graph.analysis import diagnosis
+from casm_graph.fit import effect_fit
+from casm_graph.pipeline import calibrate as calibrate_run
+from casm_graph.sim.aibo import SimConfig, simulate, write
 
 
 def main():

@@ -4,7 +4,7 @@
 
 Per robot, through the command line's code paths: ``calibrate`` (base), ``diagnose`` (residual
 structure and the candidates a continuous log can take), ``calibrate --effect E...`` with every
-candidate BIC supports strongly (delta BIC <= -10), and :func:`casm_graph.groundtruth.evaluate` on
+candidate BIC supports strongly (delta BIC <= -10), and :func:`casm_graph.analysis.groundtruth.evaluate` on
 both fits. Prints one row per robot (the README's table) with the three strongest residual
 structures of each base model and the position RMS over the identity-model graph's (the uncalibrated
 models, no effects; the issue's target is at most 0.5); writes OUT/summary.json.
@@ -15,9 +15,12 @@ import argparse
 import json
 from pathlib import Path
 
-from casm_graph import calibrate_run, diagnose_run, groundtruth, mrclam
-from casm_graph.diagnosis import BIC_SUPPORT
-from casm_graph.log import load
+from casm_graph.analysis import groundtruth
+from casm_graph.analysis.diagnosis import BIC_SUPPORT
+from casm_graph.io import mrclam
+from casm_graph.io.log import load
+from casm_graph.pipeline import calibrate as calibrate_run
+from casm_graph.pipeline import diagnose as diagnose_run
 
 
 def run_robot(data: Path, robot: int, out: Path) -> dict:

@@ -3,7 +3,7 @@
     nice -n 10 python benchmarks/mrclam_robots.py [--data ../shared/data/mrclam7] [--robots 1 2 3 4 5]
         [--minutes M] [--sensor-degree D] [--effect NAME]... [--out mrclam_runs]
 
-Per robot: import, ``casm-graph calibrate`` (the same code path), then :func:`casm_graph.groundtruth.evaluate`.
+Per robot: import, ``casm-graph calibrate`` (the same code path), then :func:`casm_graph.analysis.groundtruth.evaluate`.
 Prints a markdown table (the README's) and writes OUT/summary.json and OUT/robotN/{model.json,report.html}.
 """
 from __future__ import annotations
@@ -16,8 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from casm_graph import calibrate_run, command_report, groundtruth, mrclam
-from casm_graph.log import load
+from casm_graph.analysis import groundtruth
+from casm_graph.io import mrclam
+from casm_graph.io.log import load
+from casm_graph.pipeline import calibrate as calibrate_run
+from casm_graph.report import command as command_report
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -26,7 +29,7 @@ def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: 
     bundle = out / f"robot{robot}_log"
     log, _ = mrclam.import_robot(data, robot, bundle)
     if minutes:
-        from casm_graph.log import write
+        from casm_graph.io.log import write
         write(log.window(log.t[0], log.t[0] + 60 * minutes), bundle)
     t0 = time.perf_counter()
     log, fit = calibrate_run.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects))

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import argparse
 
-from casm_graph.bad_data import CASES, trial
+from casm_graph.pipeline.bad_data import CASES, trial
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

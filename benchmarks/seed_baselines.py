@@ -16,12 +16,13 @@ import time
 
 import numpy as np
 
-from casm_graph import continuous, mcl, scasm
-from casm_graph.effects.regional_motion_noise import Regions, from_entry
-from casm_graph.simulate_1d import Sim1DConfig
-from casm_graph.simulate_1d import simulate as sim1d
-from casm_graph.simulate_floor import FloorConfig, region_of
-from casm_graph.simulate_floor import simulate as simfloor
+from casm_graph.baselines import mcl, scasm
+from casm_graph.fit import continuous
+from casm_graph.models.effects.regional_motion_noise import Regions, from_entry
+from casm_graph.sim.floor import FloorConfig, region_of
+from casm_graph.sim.floor import simulate as simfloor
+from casm_graph.sim.walk_1d import Sim1DConfig
+from casm_graph.sim.walk_1d import simulate as sim1d
 
 
 def scasm_trials(n: int, minutes: float = 2.5) -> dict:

@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from casm_graph import continuous, groundtruth, mrclam
-from casm_graph.log import load
+from casm_graph.analysis import groundtruth
+from casm_graph.fit import continuous
+from casm_graph.io import mrclam
+from casm_graph.io.log import load
 
 
 def judged(log, fit) -> str:

@@ -1,7 +1,7 @@
 """Time per LM iteration on the same full graph: our numpy-driven loop vs GTSAM's stock optimizer.
 
 Both start from the same values (the simulator's truth, perturbed) on the same graph (a pose every
-step, the CustomFactor graph of ``casm_graph.graph.build`` for the stock optimizer and its numpy
+step, the CustomFactor graph of ``casm_graph.graph.table.build`` for the stock optimizer and its numpy
 twin for ours) and run a fixed number of iterations, side by side in one process.
 
     python benchmarks/stock_vs_ours.py [--steps 3000 9000 27000] [--iterations 2]
@@ -14,10 +14,10 @@ import time
 import gtsam
 import numpy as np
 
-from casm_graph import graph as G
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
-from casm_graph.solve import least_squares
+from casm_graph.fit.solve import least_squares
+from casm_graph.graph import table as G
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 def setup(steps: int, seed: int = 0):

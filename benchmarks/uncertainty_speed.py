@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 
-from casm_graph import ekfs
-from casm_graph.methods.ekfs_em import _observations
-from casm_graph.model import Model
-from casm_graph.simulate import SimConfig, simulate
-from casm_graph.marginal_likelihood import MarginalLikelihood, likelihood
+from casm_graph.analysis.marginal_likelihood import MarginalLikelihood, likelihood
+from casm_graph.fit import ekfs
+from casm_graph.fit.methods.ekfs_em import _observations
+from casm_graph.models.model import Model
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 def truth_model(log, truth) -> Model:

@@ -3,7 +3,7 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/vicon_lag.py [--robots 1 2 3 4 5]
 
 Per lag tau: the command-map form with that lag fitted with the poses held at Vicon
-(:func:`casm_graph.groundtruth.truth_fit`), and the RMS of what it leaves unexplained over 1-s
+(:func:`casm_graph.analysis.groundtruth.truth_fit`), and the RMS of what it leaves unexplained over 1-s
 segments; the lag where the turn residual is smallest is the one the truth supports.
 """
 from __future__ import annotations
@@ -16,9 +16,10 @@ from pathlib import Path
 import numpy as np
 
 import factors
-from casm_graph import continuous as CT
-from casm_graph import groundtruth, mrclam
-from casm_graph.command_model import for_commands
+from casm_graph.analysis import groundtruth
+from casm_graph.fit import continuous as CT
+from casm_graph.io import mrclam
+from casm_graph.models.command_model import for_commands
 
 TAUS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0)
 

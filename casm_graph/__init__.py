@@ -6,20 +6,20 @@
     diag = cg.diagnose(log, cal)         # where the model fails, which effect is missing
     post = cg.uncertainty(log, cal)      # emcee on the noise levels, Laplace on the rest
 """
-from .calibrate_run import calibrate
-from .calibration import CalibrateOptions, Calibration
-from .diagnose_run import diagnose
-from .diagnosis import Diagnosis
-from .effects import Effect, catalog, register
-from .groundtruth import evaluate as against_truth
-from .hidden_effect import model_error
-from .log import Log, LogError
-from .log import load as load_log
-from .mrclam import find_data as find_mrclam
-from .mrclam import load_robot as load_mrclam
-from .simulators import simulate, write_log
-from .uncertainty_run import Uncertainty, uncertainty
+from casm_graph.analysis.diagnosis import Diagnosis
+from casm_graph.analysis.groundtruth import evaluate as against_truth
+from casm_graph.fit.calibration import CalibrateOptions, Calibration
+from casm_graph.io.log import Log, LogError
+from casm_graph.io.log import load as load_log
+from casm_graph.io.mrclam import find_data as find_mrclam
+from casm_graph.io.mrclam import load_robot as load_mrclam
+from casm_graph.models.effects import Effect, catalog, register
+from casm_graph.pipeline.calibrate import calibrate
+from casm_graph.pipeline.diagnose import diagnose
+from casm_graph.pipeline.hidden_effect import model_error
+from casm_graph.pipeline.uncertainty import Uncertainty, uncertainty
+from casm_graph.sim.protocols import simulate, write_log
 
-__all__ = ["load_log", "simulate", "write_log", "calibrate", "diagnose", "uncertainty", "Effect", "register", "catalog", "model_error", "LogError",
-           "Log", "CalibrateOptions", "Calibration", "Diagnosis", "Uncertainty", "load_mrclam", "find_mrclam",
-           "against_truth"]
+__all__ = ["load_log", "simulate", "write_log", "calibrate", "diagnose", "uncertainty", "Effect", "register", "catalog",
+           "model_error", "against_truth", "load_mrclam", "find_mrclam", "LogError", "Log", "CalibrateOptions",
+           "Calibration", "Diagnosis", "Uncertainty"]

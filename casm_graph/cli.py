@@ -14,12 +14,17 @@ import warnings
 
 from tqdm import tqdm
 
-from . import calibrate_run, compare, diagnose_run, fleet, mrclam, simulators, uncertainty_run
-from .effects import catalog
-from .effects.regional_motion_noise import determined
-from .log import LogError
-from .methods import METHODS, Progress
-from .output import atomic_dir, checked_out
+from casm_graph.fit.methods import METHODS, Progress
+from casm_graph.io import mrclam
+from casm_graph.io.log import LogError
+from casm_graph.io.output import atomic_dir, checked_out
+from casm_graph.models.effects import catalog
+from casm_graph.models.effects.regional_motion_noise import determined
+from casm_graph.pipeline import calibrate as calibrate_run
+from casm_graph.pipeline import compare, fleet
+from casm_graph.pipeline import diagnose as diagnose_run
+from casm_graph.pipeline import uncertainty as uncertainty_run
+from casm_graph.sim import protocols as simulators
 
 
 class Bar(Progress):

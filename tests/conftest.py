@@ -7,7 +7,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from casm_graph.simulate import SimConfig, simulate, write  # noqa: E402
+from casm_graph.sim.aibo import SimConfig, simulate, write  # noqa: E402
 
 FULL = os.environ.get("CASM_FULL") == "1"
 

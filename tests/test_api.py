@@ -16,7 +16,7 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.cli import main
-from casm_graph.simulate import SimConfig, simulate, write
+from casm_graph.sim.aibo import SimConfig, simulate, write
 
 
 class HeadingSlip(cg.Effect):

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from casm_graph.model import Model
+from casm_graph.models.model import Model
 
 
 def test_calibrate_writes_model_trajectory_and_report(short_bundle, tmp_path):

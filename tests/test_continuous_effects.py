@@ -11,13 +11,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from casm_graph import continuous as CT
-from casm_graph import robust
 from casm_graph.cli import main
-from casm_graph.command_model import CommandModel, lagged
-from casm_graph.log import write
-from casm_graph.model import Model
-from casm_graph.simulate_floor import FloorConfig, simulate
+from casm_graph.fit import continuous as CT
+from casm_graph.graph import robust
+from casm_graph.io.log import write
+from casm_graph.models.command_model import CommandModel, lagged
+from casm_graph.models.model import Model
+from casm_graph.sim.floor import FloorConfig, simulate
 
 TRUE_LAG = 0.3
 

@@ -9,10 +9,10 @@ at 200, 23.6 / 16.3 at 500). The four fits take about 6 minutes on a 2 GHz EPYC 
 import numpy as np
 import pytest
 
-from casm_graph.hidden_effect import PAPER_SIM_RMS     # vx m/s, vy m/s, w rad/s (PAPERS.md section 1)
-from casm_graph.methods import METHODS
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
+from casm_graph.fit.methods import METHODS
+from casm_graph.models.model import paper_start
+from casm_graph.pipeline.hidden_effect import PAPER_SIM_RMS  # vx m/s, vy m/s, w rad/s (PAPERS.md section 1)
+from casm_graph.sim.aibo import SimConfig, simulate
 
 from .conftest import FULL, largest_early_drop
 

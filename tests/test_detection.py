@@ -2,7 +2,7 @@
 
 Each trial simulates a log with one catalog effect hidden at a moderate strength, calibrates the
 base model, diagnoses it, adds the verdict with ``calibrate --effect`` and diagnoses again
-(:mod:`casm_graph.hidden_effect`). Reduced size (CI): actuator lag, one seed, six minutes, the
+(:mod:`casm_graph.pipeline.hidden_effect`). Reduced size (CI): actuator lag, one seed, six minutes, the
 diagnosis choosing between the lag and its closest look-alike (camera latency); its second
 diagnosis, after the lag is added, is the no-missing-effect case. Held-out folds need about two
 minutes of log each (with the first held-out score the lag's gain was negative on three-minute
@@ -22,7 +22,7 @@ import os
 
 import pytest
 
-from casm_graph import hidden_effect
+from casm_graph.pipeline import hidden_effect
 
 from .conftest import FULL
 

@@ -7,11 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from casm_graph import calibrate_run
-from casm_graph import diagnosis as D
-from casm_graph.effects import REGISTRY
-from casm_graph.residuals import Channel
-
+from casm_graph.analysis import diagnosis as D
+from casm_graph.fit.residuals import Channel
+from casm_graph.models.effects import REGISTRY
+from casm_graph.pipeline import calibrate as calibrate_run
 
 
 def cli(*args):
@@ -148,7 +147,7 @@ def test_an_effect_the_log_cannot_support_is_refused(short_bundle, tmp_path):
 def test_compare_against_measured_tables(short_run, tmp_path):
     d, run = short_run
     truth = json.loads((d / "truth_model.json").read_text())
-    from casm_graph.simulate import true_reading
+    from casm_graph.sim.aibo import true_reading
     meas = tmp_path / "measured"
     meas.mkdir()
     rows = ["action,vx,vy,w"] + [f"{a},{v[0]},{v[1]},{v[2]}" for a, v in truth["action_model"]["velocities"].items()]

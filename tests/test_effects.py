@@ -3,14 +3,13 @@ import gtsam
 import numpy as np
 import pytest
 
-from casm_graph import augmented as AU
-from casm_graph import effect_fit
-from casm_graph.effects import REGISTRY, catalog
-from casm_graph.effects.base import held
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
-from casm_graph.solve import _damping
-
+from casm_graph.fit import effect_fit
+from casm_graph.fit.solve import _damping
+from casm_graph.graph import augmented as AU
+from casm_graph.models.effects import REGISTRY, catalog
+from casm_graph.models.effects.base import held
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate
 
 ALL = sorted(REGISTRY)
 TABLE = [n for n in ALL if not REGISTRY[n].continuous_only]      # effects the action-table simulator and graph take

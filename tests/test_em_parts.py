@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from casm_graph import chain, ekfs
-from casm_graph import graph as G
-from casm_graph.methods.ekfs_em import _observations
-from casm_graph.methods.graph_em import expected_displacement, gaussian_moments
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
-
+from casm_graph.fit import ekfs
+from casm_graph.fit.methods.ekfs_em import _observations
+from casm_graph.fit.methods.graph_em import expected_displacement, gaussian_moments
+from casm_graph.graph import chain
+from casm_graph.graph import table as G
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 @pytest.fixture(scope="module")

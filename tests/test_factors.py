@@ -5,9 +5,9 @@ import pytest
 from gtsam.symbol_shorthand import C, V, X
 
 import factors
-from casm_graph import graph as G
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate
+from casm_graph.graph import table as G
+from casm_graph.models.model import paper_start
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 def numerical_jacobians(factor, values, keys, eps=1e-6):

@@ -13,15 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from casm_graph import cli, drift, fleet
-from casm_graph.fleet import (
-    DaskPool,
-    calibrate_fleet,
-    client_for,
-    find_bundles,
-    robot_and_time,
-)
-from casm_graph.simulate_fleet import simulate_fleet
+from casm_graph import cli
+from casm_graph.analysis import drift
+from casm_graph.pipeline import fleet
+from casm_graph.pipeline.fleet import DaskPool, calibrate_fleet, client_for, find_bundles, robot_and_time
+from casm_graph.sim.fleet import simulate_fleet
 
 from .conftest import FULL
 

@@ -13,7 +13,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from casm_graph.log import MAX_POSITION, Log, LogError, load
+from casm_graph.io.log import MAX_POSITION, Log, LogError, load
 
 SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from casm_graph.log import LogError, load
+from casm_graph.io.log import LogError, load
 
 
 def test_round_trip(short_bundle):

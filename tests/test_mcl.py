@@ -12,11 +12,11 @@ import json
 import numpy as np
 import pytest
 
-from casm_graph import mcl
+from casm_graph.baselines import mcl
 from casm_graph.cli import main
-from casm_graph.effects.regional_motion_noise import from_entry
-from casm_graph.log import write
-from casm_graph.simulate_floor import FloorConfig, region_of, simulate
+from casm_graph.io.log import write
+from casm_graph.models.effects.regional_motion_noise import from_entry
+from casm_graph.sim.floor import FloorConfig, region_of, simulate
 
 from .conftest import FULL
 
@@ -111,7 +111,7 @@ def test_mcl_map_with_laser_like_sensing():
 def test_range_start_slopes_are_tried_and_the_likeliest_goes_on():
     """A range sensor's start slope is picked by the log-likelihood after the held coarse rounds, among the
     ``SLOPE_STARTS`` slopes whose windows agree best (MRCLAM robot 4 needed it); model.json records them."""
-    from casm_graph import continuous
+    from casm_graph.fit import continuous
     log, _ = simulate(FloorConfig(minutes=2, seed=1))
     init = continuous.initialise(log, continuous.start_model(log))
     slopes = [init.slope] + [a.slope for a in init.alternatives]
@@ -141,8 +141,8 @@ def test_regional_motion_noise_is_refused_clearly_where_it_cannot_run(short_bund
 
 
 def test_regional_noise_problem_weights_each_segment_by_its_region():
-    from casm_graph import continuous as CT
-    from casm_graph.effects.regional_motion_noise import Regions, entry, variances
+    from casm_graph.fit import continuous as CT
+    from casm_graph.models.effects.regional_motion_noise import Regions, entry, variances
     log, _ = simulate(FloorConfig(minutes=1, seed=0))
     m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=1.0))
     k = np.array([[0.002, 0.01, 0.002]] * 6)

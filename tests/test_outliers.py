@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from casm_graph.hidden_effect import model_error
-from casm_graph.methods import METHODS
-from casm_graph.model import paper_start
-from casm_graph.outliers import outlying, prune
-from casm_graph.simulate import SimConfig, simulate
+from casm_graph.fit.methods import METHODS
+from casm_graph.fit.outliers import outlying, prune
+from casm_graph.models.model import paper_start
+from casm_graph.pipeline.hidden_effect import model_error
+from casm_graph.sim.aibo import SimConfig, simulate
 
 
 def test_outlying_flags_planted_sightings_and_prune_keeps_indices(short_bundle):

@@ -5,7 +5,7 @@ CI runs one 4-minute seed; CASM_FULL=1 runs three 6-minute seeds (benchmarks/rob
 """
 import pytest
 
-from casm_graph.bad_data import trial
+from casm_graph.pipeline.bad_data import trial
 
 from .conftest import FULL
 

@@ -6,12 +6,12 @@ benchmarks/seed_baselines.py prints the full table.
 import numpy as np
 import pytest
 
-from casm_graph import scasm
+from casm_graph.baselines import scasm
 from casm_graph.cli import main
-from casm_graph.log import LogError
-from casm_graph.simulate import SimConfig, simulate
-from casm_graph.simulate_1d import Sim1DConfig, write
-from casm_graph.simulate_1d import simulate as simulate_1d
+from casm_graph.io.log import LogError
+from casm_graph.sim.aibo import SimConfig, simulate
+from casm_graph.sim.walk_1d import Sim1DConfig, write
+from casm_graph.sim.walk_1d import simulate as simulate_1d
 
 from .conftest import FULL
 

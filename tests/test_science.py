@@ -6,11 +6,11 @@ twenty 6-minute seeds. benchmarks/accuracy.py prints the same figures as a table
 import numpy as np
 import pytest
 
-from casm_graph.hidden_effect import PAPER_SIM_RMS     # vx m/s, vy m/s, w rad/s (PAPERS.md section 1)
-from casm_graph.methods import METHODS
-from casm_graph.methods.ekfs_em import velocity_errors
-from casm_graph.model import paper_start
-from casm_graph.simulate import SimConfig, simulate, true_reading
+from casm_graph.fit.methods import METHODS
+from casm_graph.fit.methods.ekfs_em import velocity_errors
+from casm_graph.models.model import paper_start
+from casm_graph.pipeline.hidden_effect import PAPER_SIM_RMS  # vx m/s, vy m/s, w rad/s (PAPERS.md section 1)
+from casm_graph.sim.aibo import SimConfig, simulate, true_reading
 
 from .conftest import FULL, largest_early_drop
 

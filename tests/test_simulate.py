@@ -5,9 +5,9 @@ import sys
 
 import numpy as np
 
-from casm_graph.actions import attempted_table
-from casm_graph.log import wrap
-from casm_graph.simulate import BEACONS, FIELD, SimConfig, simulate
+from casm_graph.io.log import wrap
+from casm_graph.models.aibo import attempted_table
+from casm_graph.sim.aibo import BEACONS, FIELD, SimConfig, simulate
 
 
 def test_protocol():

@@ -3,7 +3,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from casm_graph.solve import marginals
+from casm_graph.fit.solve import marginals
 
 
 def chain(first_row):

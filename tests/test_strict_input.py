@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from casm_graph import cli
-from casm_graph.log import LogError, load
-from casm_graph.model import Model, paper_start
-from casm_graph.simulate import SimConfig, simulate, write
+from casm_graph.io.log import LogError, load
+from casm_graph.models.model import Model, paper_start
+from casm_graph.sim.aibo import SimConfig, simulate, write
 
 
 @pytest.fixture(scope="module")

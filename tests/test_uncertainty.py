@@ -12,22 +12,21 @@ import pytest
 from gtsam.symbol_shorthand import C, V
 from scipy.sparse.linalg import splu
 
-from casm_graph import ekfs
-from casm_graph import graph as G
-from casm_graph import marginal_likelihood as U
-from casm_graph.augmented import EffectProblem
+from casm_graph.analysis import marginal_likelihood as U
+from casm_graph.analysis.posterior import parse_prior
 from casm_graph.cli import main
-from casm_graph.log import LogError
-from casm_graph.methods import METHODS
-from casm_graph.methods.ekfs_em import _observations
-from casm_graph.model import Model, paper_start
-from casm_graph.posterior import parse_prior
-from casm_graph.simulate import SimConfig, simulate, write
-from casm_graph.uncertainty_report import true_table, true_values
-from casm_graph.uncertainty_run import compute
+from casm_graph.fit import ekfs
+from casm_graph.fit.methods import METHODS
+from casm_graph.fit.methods.ekfs_em import _observations
+from casm_graph.graph import table as G
+from casm_graph.graph.augmented import EffectProblem
+from casm_graph.io.log import LogError
+from casm_graph.models.model import Model, paper_start
+from casm_graph.pipeline.uncertainty import compute
+from casm_graph.report.uncertainty import true_table, true_values
+from casm_graph.sim.aibo import SimConfig, simulate, write
 
 from .conftest import FULL
-
 
 Z90 = 1.6448536269514722
 

@@ -1,0 +1,111 @@
+"""``diagnose`` for logs with continuous commands (e.g. the MRCLAM robots).
+
+The same residual analysis as :mod:`casm_graph.analysis.diagnosis` (whiteness, binned means and spreads per
+covariate, strongest first) on the command-model graph of :mod:`casm_graph.fit.continuous`: the model
+is re-settled on the log (poses, command map and polynomial; noise levels as given), and its
+motion residuals per knot-to-knot segment and its reading and bearing residuals per sighting are
+tested. ``time_since_action_change`` is the time since the command last moved by more than
+``COMMAND_CHANGE`` of its range; with a fixed camera the image angle is the bearing (listed first,
+so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
+candidates, each scored by delta BIC from its profile log-likelihood
+(:func:`casm_graph.fit.continuous.profile`); time-blocked held-out folds are not run for continuous
+logs, so the verdict's second line of evidence is the residual structure the effect is built for.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+import factors
+from casm_graph.analysis.diagnosis import Candidate, Diagnosis, channel_report, structures, verdict
+from casm_graph.fit import continuous as CT
+from casm_graph.fit.methods.base import Fit
+from casm_graph.fit.residuals import Channel
+from casm_graph.fit.solve import least_squares
+from casm_graph.io.log import Log
+from casm_graph.models.effects import REGISTRY
+from casm_graph.models.model import Model
+
+COMMAND_CHANGE = 0.1
+WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a first-order lag "
+                        "of {:.3f} s.",
+        "lens_distortion": "For a fixed camera the image angle is the bearing: the reading is the polynomial times "
+                           "(1 + {:.4f} bearing^2)."}
+SETTLE_ITERATIONS = 8
+
+
+def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndarray:
+    """(T,) seconds since either command last jumped by more than ``frac`` of its range."""
+    span = np.ptp(log.controls, axis=0)
+    jump = np.any(np.abs(np.diff(log.controls, axis=0)) > frac * np.where(span > 0, span, 1.0), axis=1)
+    last = np.maximum.accumulate(np.where(np.concatenate([[True], jump]), np.arange(log.steps), 0))
+    return log.t - log.t[last]
+
+
+def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[str, Channel]:
+    """Whitened residual channels of the continuous graph with the INTERFACE covariates it has."""
+    lay = problem.lay
+    P = st.poses
+    e, _ = factors.command.error(P[:-1], P[1:], st.params, problem.Bv, problem.Bw, lay.seg_dt)
+    v = model.command.velocities(log.controls, log.dt)
+    seg_v = (v[lay.seg_idx] * lay.seg_dt[:, :, None]).sum(axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
+    t = log.pose_times[lay.knots[:-1]] - log.t[0]
+    since = time_since_command_change(log)[lay.knots[:-1]]
+    cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "heading": P[:-1, 2], "speed": seg_v[:, 0],
+           "turn_rate": seg_v[:, 2], "time_since_action_change": since}
+    out = {}
+    for k, name in enumerate(("forward", "lateral", "turn")):
+        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov)
+    pose = P[lay.obs_knot]
+    res = CT.sighting_residuals(log, pose, model)
+    dist, bearing = res["distance"], res["bearing"]
+    vo = v[np.minimum(log.obs_step, log.steps - 1)]
+    ot = log.obs_t - log.t[0]
+    scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
+            "turn_rate": vo[:, 2], "distance": dist, "image_angle": bearing, "bearing": bearing,
+            "landmark": log.obs_landmark.astype(float)}
+    for name, raw, sigma, sel in (("reading", res["reading"], problem.reading_sigma, problem.r_sel),
+                                  ("bearing", res["bearing_residual"], problem.bearing_sigma, problem.b_sel)):
+        keep = sel & np.isfinite(raw)
+        out[name] = Channel(name, raw[keep] / sigma, raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
+    return out
+
+
+def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagnosis:
+    """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate effects."""
+    t0 = time.perf_counter()
+    if progress is not None:
+        progress.stage("refit model", None)
+    lay = CT.layout(log, CT.FULL_KNOT_DT)
+    use = CT.gate(log, poses[log.obs_step], model)
+    problem = CT.Problem(log, lay, model, use, poses[lay.knots])
+    st, _ = least_squares(problem, CT.state(poses[lay.knots], model), max_iterations=SETTLE_ITERATIONS)
+    model = CT.with_state(model, st)
+    full = CT.fill_in(log, model, lay.knots, st.poses)
+    base = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
+    chs = channels(log, problem, st, model)
+    rep = channel_report(chs)
+    struct = structures(rep)
+    skipped = {n: ("added on request (calibrate --effect), not diagnosed" if n in CT.NOISE_EFFECTS else
+                   "not available for continuous commands") for n in sorted(REGISTRY) if n not in CT.EFFECTS}
+    cands = []
+    todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0]
+    if progress is not None and todo:
+        progress.stage("candidates", len(todo), unit="effects")
+    for name in todo:
+        prof = CT.profile(log, base, name)
+        eff = REGISTRY[name]
+        (param,) = eff.params
+        cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=prof.delta_bic,
+                               heldout_nll_drop=float("nan"), explanation=f"{WHAT[name].format(prof.value)} {eff.physics}",
+                               delta_log_likelihood=prof.gain, parameters={param: prof.value},
+                               heldout_skipped="held-out folds are not run for continuous-command logs"))
+        if progress is not None:
+            progress.step(1)
+    cands.sort(key=lambda c: c.delta_bic)
+    v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS})
+    if cands:
+        words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
+                     "residual structure it is built for.")
+    return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped)

@@ -1,0 +1,444 @@
+"""Where a model fails and which physical effect is missing (``casm-graph diagnose``).
+
+1. The model is refitted on the log as it stands (same procedure as every candidate, so the
+   comparison is fair) and its residual channels are tested: whiteness (Ljung-Box) and, for each
+   covariate, the dependence of the residuals' mean and of their spread on it (binned means,
+   one-way ANOVA F-test; Brown-Forsythe on absolute deviations for the spread). The residuals of
+   a time series are autocorrelated, so the F statistic is deflated by the variance inflation of
+   an AR(1) fit and the denominator degrees of freedom use the effective sample size. Strength is
+   omega squared: the share of residual variance the covariate explains, bias-corrected.
+2. Each applicable catalog effect not already in the model is added and fitted (warm start) and
+   scored by delta BIC (Laplace log-likelihood, trajectory integrated out) and by the held-out
+   negative log-likelihood on time-blocked folds: the effect's parameters and the noise levels are
+   fitted with one third of the observations hidden, and the hidden ones are scored by
+   log p(O_all) - log p(O_train) with those held fixed and the table, polynomial and poses fitted
+   in both (:func:`heldout_log_likelihood`). The folds run for the candidates whose
+   delta BIC is below zero; one that does not even improve the in-sample fit cannot be the verdict,
+   and its ``heldout_nll_drop`` is null.
+3. The verdict names the candidate that BIC supports strongly and that either improves the
+   held-out score or was built for the strongest residual structure; ``none`` when no candidate is
+   supported and no channel shows material structure; ``unexplained:<covariate>`` when structure
+   remains that no candidate accounts for.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from scipy import stats
+
+from casm_graph.fit import effect_fit
+from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
+from casm_graph.graph.augmented import instantiate
+from casm_graph.io.log import Log, LogError
+from casm_graph.io.output import atomic_dir, json_text
+from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects.base import held
+from casm_graph.models.model import Model
+
+SCHEMA = "casm-graph/diagnosis/1"
+BINS = 10
+MIN_PER_BIN = 20
+FOLDS = 3
+# The evidence a verdict needs (calibrated on effect-free simulated logs, see BENCHMARKS.md):
+BIC_SUPPORT = -10.0          # delta BIC at most this (strong evidence on Kass and Raftery's scale)
+HELDOUT_SUPPORT = 0.0        # and the held-out log-likelihood must improve
+BIC_TIE = 2.0                # delta BICs closer than this are no evidence either way: the held-out score decides
+STRUCTURE_P = 1e-6           # residual structure counts when this significant ...
+STRUCTURE_OMEGA2 = 0.01      # ... and it explains at least 1 % of the residual variance
+CANDIDATE_ROUNDS, CANDIDATE_ITERATIONS = 2, 8
+FOLD_ITERATIONS = 4
+HELDOUT_GATE = 0.0           # candidates with delta BIC below this get held-out folds
+FOLD_TOL = 1e-5              # relative cost change that ends a fold fit (about 0.1 nat on these logs)
+
+
+# --------------------------------------------------------------------------- statistics
+def _inflation(r_time_ordered: np.ndarray) -> float:
+    """Variance inflation (1 + rho) / (1 - rho) of means of an AR(1) series with lag-one correlation rho >= 0."""
+    r = r_time_ordered - r_time_ordered.mean()
+    rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
+    rho = min(max(rho, 0.0), 0.95)
+    return (1 + rho) / (1 - rho)
+
+
+def _groups(x: np.ndarray, categorical: bool) -> np.ndarray:
+    """Group label of each row: categories with enough rows, or quantile bins of a numeric covariate."""
+    if categorical:
+        vals, inv, counts = np.unique(x, return_inverse=True, return_counts=True)
+        big = counts >= MIN_PER_BIN
+        return np.where(big[inv], inv, -1)
+    bins = min(BINS, max(len(x) // MIN_PER_BIN, 1))
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
+
+
+def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]:
+    """(omega squared, p) of one-way ANOVA of ``y`` on groups ``g`` with autocorrelation-deflated F."""
+    keep = g >= 0
+    y, g = y[keep], g[keep]
+    labels, inv = np.unique(g, return_inverse=True)
+    k, n = len(labels), len(y)
+    if k < 2 or n <= k + 1:
+        return 0.0, 1.0
+    means = np.bincount(inv, weights=y) / np.bincount(inv)
+    ssb = float(np.sum(np.bincount(inv) * (means - y.mean()) ** 2))
+    sst = float(np.sum((y - y.mean()) ** 2))
+    ssw = sst - ssb
+    msw = ssw / (n - k)
+    omega2 = max(0.0, (ssb - (k - 1) * msw) / (sst + msw)) if sst > 0 else 0.0
+    n_eff = max(n / inflation, k + 2.0)
+    F = (ssb / (k - 1)) / max(msw, 1e-300) / inflation
+    p = float(stats.f.sf(F, k - 1, n_eff - k))
+    omega2_eff = max(0.0, (ssb / inflation - (k - 1) * msw) / (sst + msw)) if sst > 0 else 0.0
+    return min(omega2, omega2_eff), p
+
+
+MOTION_CHANNELS = ("forward", "lateral", "turn")
+
+
+def covariate_tests(ch: Channel) -> list[dict]:
+    """Mean (and for sensor channels spread) dependence of a channel's residuals on each covariate, strongest first.
+
+    Motion residuals are smoothing residuals: their spread follows each step's leverage (how many
+    sightings pin it) rather than physics, so motion channels are tested for their mean only.
+    """
+    order = np.argsort(ch.time, kind="stable")
+    r = ch.residual
+    motion = ch.name in MOTION_CHANNELS
+    infl = _inflation(r[order])
+    dev = np.abs(r - np.median(r))
+    infl_dev = _inflation(dev[order])
+    out = []
+    for name, x in ch.covariates.items():
+        ok = np.isfinite(x) & np.isfinite(r)
+        if ok.sum() < 3 * MIN_PER_BIN or np.ptp(x[ok]) == 0:
+            continue
+        cat = name in CATEGORICAL
+        g = _groups(x[ok], cat)
+        s_mean, p_mean = anova(r[ok], g, infl)
+        if motion:
+            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"})
+            continue
+        s_spread, p_spread = anova(dev[ok], g, infl_dev)
+        if s_spread > s_mean:
+            out.append({"name": name, "strength": s_spread, "p": p_spread, "kind": "spread"})
+        else:
+            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"})
+    out.sort(key=lambda d: (-d["strength"], d["p"]))
+    return out
+
+
+def channel_report(chs: dict[str, Channel]) -> dict:
+    rep = {}
+    for name, ch in chs.items():
+        order = np.argsort(ch.time, kind="stable")
+        rep[name] = {"rms": float(np.sqrt(np.mean(ch.residual ** 2))) if len(ch.residual) else float("nan"),
+                     "rms_raw": float(np.sqrt(np.mean(ch.raw ** 2))) if len(ch.raw) else float("nan"),
+                     "whiteness_p": ljung_box(ch.residual[order]),
+                     "covariates": covariate_tests(ch)}
+    return rep
+
+
+def structures(rep: dict) -> list[dict]:
+    """Material residual structure: (channel, covariate) pairs past both thresholds, strongest first."""
+    found = []
+    for ch, r in rep.items():
+        for c in r["covariates"]:
+            if c["p"] < STRUCTURE_P and c["strength"] >= STRUCTURE_OMEGA2:
+                found.append({"channel": ch, **c})
+    found.sort(key=lambda d: -d["strength"])
+    return found
+
+
+# --------------------------------------------------------------------------- candidates
+@dataclass
+class Candidate:
+    effect: str
+    channel: str
+    delta_bic: float
+    heldout_nll_drop: float
+    explanation: str
+    delta_log_likelihood: float
+    parameters: dict = field(default_factory=dict)
+    seconds: float = 0.0
+    heldout_skipped: str = "no in-sample gain (delta BIC >= 0), held-out folds not run"
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
+                "heldout_nll_drop": self.heldout_nll_drop, "explanation": self.explanation,
+                "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters,
+                **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped})}
+
+
+def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
+    """Masks of the observations kept for training in each of ``k`` contiguous time blocks."""
+    t = log.obs_t
+    edges = np.quantile(t, np.linspace(0, 1, k + 1))
+    block = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, k - 1)
+    return [block != f for f in range(k)]
+
+
+def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
+                           detail: list | None = None) -> float:
+    """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
+    a block say about it.
+
+    Per fold: the model is fitted on the rest; then, with the effects' parameters and the noise
+    levels held at those values, table, polynomial and poses are fitted once with the block and once
+    without, and the block's term is the difference of the two log-likelihoods. The table and
+    polynomial are the nuisance here: on a six-minute log many actions run only inside one block,
+    and a table learned without it predicts that block so badly (hundreds of nats either way) that
+    the comparison of two models drowned in it. The fit with the block starts from the training
+    poses and from the model's own full-log poses and keeps the better (the drifted poses of a
+    two-minute block without sightings can stop in another basin); the fit without it is the
+    training problem with effects and noise held, so the training poses are already its optimum.
+    ``detail`` (a list) receives per fold the with-block log-likelihood from each start and the one without.
+    """
+    total = 0.0
+    fixed = [held(_resolve(e)) for e in effects]
+    for mask in folds(log):
+        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS,
+                            rel_tol=FOLD_TOL)
+        with_block, without = (
+            [effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=FOLD_ITERATIONS,
+                            obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
+             for start in starts]
+            for m, starts in ((None, (tr.poses, poses)), (mask, (tr.poses,))))
+        if detail is not None:
+            detail.append({"with_block_from_training_poses": with_block[0],
+                           "with_block_from_full_log_poses": with_block[1], "without_block": without[0]})
+        total += max(with_block) - without[0]
+    return total
+
+
+def _n_data(log: Log) -> int:
+    return int(np.sum(np.isfinite(log.obs_reading)) + np.sum(np.isfinite(log.obs_bearing)))
+
+
+def _resolve(extra):
+    """A catalog name (how effects travel to worker processes) back to its class."""
+    return REGISTRY[extra] if isinstance(extra, str) else extra
+
+
+def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra):
+    """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
+
+    Returns the candidate (held-out score still to come) and the fitted model and poses.
+    """
+    t0 = time.perf_counter()
+    eff = instantiate([_resolve(extra)], log)[0]
+    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=CANDIDATE_ROUNDS,
+                       iterations=CANDIDATE_ITERATIONS)
+    dll = f.log_likelihood - base.log_likelihood
+    dbic = -2.0 * dll + eff.free_parameters() * np.log(_n_data(log))
+    c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
+                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0)
+    return c, f.model, f.poses
+
+
+def _fit_task(args):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    return fit_candidate(*args)
+
+
+def _heldout_task(args):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    log, model, poses, effects = args
+    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects])
+
+
+def _worker_signals():
+    """Workers leave interrupts to the parent (which terminates them) and die quietly on SIGTERM."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list:
+    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled),
+    or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
+
+    On any exception or signal the workers are terminated (the cluster's tasks cancelled) before it
+    propagates, so none outlive the caller."""
+    if client is not None and len(tasks) > 1:
+        futures = client.map(fn, tasks, pure=False)
+        try:
+            results = []
+            for f in futures:
+                results.append(f.result())
+                if progress is not None:
+                    progress.step(1)
+            return results
+        except BaseException:
+            client.cancel(futures)
+            raise
+    results = []
+    if workers > 1 and len(tasks) > 1:
+        pool = multiprocessing.Pool(min(workers, len(tasks)), initializer=_worker_signals)
+        try:
+            for r in pool.imap(fn, tasks):
+                results.append(r)
+                if progress is not None:
+                    progress.step(1)
+            pool.close()
+            pool.join()
+            return results
+        except (AttributeError, TypeError, pickle.PicklingError):
+            results = []
+        finally:
+            pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
+    for t in tasks:
+        results.append(fn(t))
+        if progress is not None:
+            progress.step(1)
+    return results
+
+
+# --------------------------------------------------------------------------- verdict
+def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None) -> tuple[str, list[str]]:
+    """The verdict and the sentences that explain it.
+
+    A candidate is supported when BIC supports it strongly and a second, independent line agrees:
+    the held-out log-likelihood improves, or the candidate is the effect built for the strongest
+    residual structure (its ``explains`` holds that channel and covariate). Among supported
+    candidates whose delta BIC is within ``BIC_TIE`` of the lowest (no evidence either way on
+    Kass and Raftery's scale; look-alikes such as a weak actuator lag and camera latency) the
+    held-out score decides.
+    """
+    words = []
+    explains = explains or {}
+    top = (structure[0]["channel"], structure[0]["name"]) if structure else None
+
+    def matches(c):
+        return top is not None and top in tuple(explains.get(c.effect, ()))
+
+    supported = [c for c in cands if c.delta_bic <= BIC_SUPPORT and (c.heldout_nll_drop > HELDOUT_SUPPORT or matches(c))]
+    if supported:
+        lead = min(c.delta_bic for c in supported)
+        tied = [c for c in supported if c.delta_bic - lead < BIC_TIE]
+        best = max(tied, key=lambda c: -np.inf if np.isnan(c.heldout_nll_drop) else c.heldout_nll_drop)
+        if best.heldout_nll_drop > HELDOUT_SUPPORT:
+            second = f"improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats"
+        else:
+            second = (f"accounts for the strongest residual structure ({top[0]} residuals against {top[1]}), "
+                      f"though the held-out score does not improve ({best.heldout_nll_drop:.1f} nats)")
+        words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
+                     f"and {second}. {best.explanation}")
+        if len(tied) > 1:
+            words.append("BIC cannot tell " + " and ".join(c.effect for c in tied) + " apart (delta BIC "
+                         + ", ".join(f"{c.delta_bic:.1f}" for c in tied) + f": closer than {BIC_TIE:g}); the "
+                         "held-out log-likelihood prefers " + best.effect + " (" + ", ".join(
+                             f"{c.heldout_nll_drop:.1f}" for c in tied) + " nats).")
+        rest = [c for c in supported if c is not best]
+        if rest:
+            words.append("Also supported, less strongly: " + ", ".join(
+                f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in rest) + ".")
+        return best.effect, words
+    if structure:
+        s = structure[0]
+        words.append(f"No catalog effect explains the data better, but the {s['channel']} residuals' "
+                     f"{s['kind']} follows {s['name']} (it explains {100 * s['strength']:.1f} % of their variance, "
+                     f"p = {s['p']:.1e}). Something the model and the catalog lack depends on {s['name']}.")
+        return f"unexplained:{s['name']}", words
+    words.append("The model explains the data: no candidate effect is supported (every delta BIC above "
+                 f"{BIC_SUPPORT:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")
+    return "none", words
+
+
+@dataclass
+class Diagnosis:
+    channels: dict
+    candidates: list[Candidate]
+    verdict: str
+    words: list[str]
+    structure: list[dict]
+    base: object
+    residuals: dict
+    seconds: float
+    skipped: dict
+    log: Log | None = None           # the log diagnosed (its report needs it)
+    write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
+
+    def to_json(self) -> dict:
+        return {"schema": SCHEMA, "channels": self.channels,
+                "candidates": [c.to_json() for c in self.candidates], "verdict": self.verdict,
+                "summary": self.words, "not_applicable": self.skipped,
+                "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
+                "seconds": round(self.seconds, 2)}
+
+    def summary(self) -> str:
+        """The verdict and the reasons, as ``casm-graph diagnose`` prints them."""
+        return "\n".join([f"verdict: {self.verdict}  ({self.seconds:.0f} s)", *("  " + w for w in self.words)])
+
+    def save(self, out, force: bool = False) -> Path:
+        """Write DIAG (diagnosis.json, report.html) all or nothing; ``out`` must be new or empty."""
+        with atomic_dir(out, force=force, inputs=[self.log.source] if self.log.source else []) as tmp:
+            (tmp / "diagnosis.json").write_text(json_text(self.to_json()))
+            if self.write_report is not None:
+                self.write_report(tmp / "report.html", self.log, self)
+        return Path(out)
+
+
+def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
+             progress=None, candidates=None, client=None) -> Diagnosis:
+    """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
+
+    ``extra_effects``: user effect classes to consider besides the catalog.
+    ``candidates``: names of the effects to try (default: every applicable one).
+    """
+    t0 = time.perf_counter()
+    pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
+    pool.update({cls.name: cls for cls in extra_effects})
+    if candidates is not None:                  # the user narrows the search to these effects
+        unknown = sorted(set(candidates) - set(pool))
+        if unknown:
+            raise LogError(f"unknown candidate effect(s) {unknown} (known: {', '.join(sorted(pool))})")
+        pool = {n: c for n, c in pool.items() if n in set(candidates)}
+    pool = list(pool.values())
+    if progress is not None:
+        progress.stage("refit model", None)
+    own = {cls.name: cls for cls in extra_effects}
+    present = [own.get(n, n) for n in model.effects]
+    present_names = set(model.effects)
+    refit = effect_fit.fit(log, model, poses, present, rounds=CANDIDATE_ROUNDS, iterations=CANDIDATE_ITERATIONS)
+    # the reference every candidate is scored against: the same warm-started procedure, nothing added
+    base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=CANDIDATE_ROUNDS,
+                          iterations=CANDIDATE_ITERATIONS)
+    chs = channels(refit.problem, refit.state)
+    rep = channel_report(chs)
+    todo, skipped = [], {}
+    for cls in pool:
+        if cls.name in present_names:
+            continue
+        why = cls(log).applicable(log)
+        if why:
+            skipped[cls.name] = why
+        else:
+            todo.append(cls)
+    wire = (lambda cls: cls.name if REGISTRY.get(cls.name) is cls else cls)
+    if progress is not None:
+        progress.stage("candidates", len(todo), unit="effects")
+    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls)) for cls in todo], workers, progress, client)
+    cands = [c for c, _, _ in fitted]
+    # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
+    # the verdict, and the folds are most of the cost
+    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, todo) if c.delta_bic < HELDOUT_GATE]
+    if promising:
+        if progress is not None:
+            progress.stage("held-out", len(promising) + 1, unit="models")
+        present_wire = [wire(type(e)) for e in base.effects]
+        held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire)]
+                         + [(log, m, p, present_wire + [wire(cls)]) for _, m, p, cls in promising],
+                         workers, progress, client)
+        for (c, _, _, _), h in zip(promising, held[1:]):
+            c.heldout_nll_drop = float(h - held[0])
+    cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
+    struct = structures(rep)
+    v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool})
+    return Diagnosis(rep, cands, v, words, struct, refit, chs, time.perf_counter() - t0, skipped)

@@ -1,0 +1,773 @@
+"""Calibration of a log with continuous commands: poses, command-model parameters and sensor polynomial.
+
+The graph has a pose at a set of knots (every ``knot_dt`` seconds and at every step with an
+observation, so sightings attach to their own pose exactly), one vector variable holding the
+command model of :mod:`casm_graph.models.command_model`, and the sensor polynomial. Consecutive knots are
+joined by a :mod:`factors.command` factor over the command steps between them.
+
+The start is global, as for the action table (:mod:`casm_graph.fit.initialise`):
+1. the grid smoother of :func:`casm_graph.fit.initialise.locate` finds positions and the sensor curve
+   with no velocities (reading = k d**p hypotheses; a range wins with p = +1);
+2. the turn map is the one whose integrated commands best explain the headings that the bearings
+   imply, by a grid search over its offset and gain (summed resultant lengths of 10 s windows);
+3. with headings fixed, positions are linear in the speed-map coefficients: least squares.
+Then a coarse graph (1 s knots) is optimised in rounds that re-estimate every noise level and set
+aside sightings more than ``robust.GATE`` sigmas off, its first rounds with the nominal maps and the
+polynomial held (the sightings place the poses before the maps may move), and a finer graph
+(0.25 s knots) finishes.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+import scipy.sparse as sp
+from gtsam.symbol_shorthand import C, M, X
+
+import factors
+from casm_graph.fit.initialise import locate
+from casm_graph.fit.methods.base import Fit, Progress
+from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
+from casm_graph.fit.solve import least_squares
+from casm_graph.fit.solve import marginals as gaussian_marginals
+from casm_graph.graph import noise, robust
+from casm_graph.graph import table as G
+from casm_graph.io.log import Log, LogError, wrap
+from casm_graph.models.command_model import CommandModel, for_commands
+from casm_graph.models.effects import regional_motion_noise as RMN
+from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
+
+PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the command scale
+POLY_PRIOR_SIGMA = 1e4
+MIN_SIGHTINGS = 10
+MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is numerical, not physical (a robot that never
+                             # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
+INIT_KNOT_DT = 0.5
+INIT_WINDOW = 5.0
+SLOPE_FACTORS = np.geomspace(0.75, 1.33, 15)   # range-line slopes tried, relative to the sensor hypothesis's
+SLOPE_STARTS = 3             # range slopes whose windows agree best, each taken through the held coarse rounds; the
+                             # likeliest goes on (MRCLAM robot 4: the best-agreeing slope led to a speed map 22 % off,
+                             # log-likelihood 40,959, on one host though not on another; the likeliest of the three to
+                             # 6.5 %, 44,762)
+COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
+COARSE_HELD_ROUNDS = 3       # coarse rounds with the maps held first: freed on the initialiser's poses, MRCLAM robot 4
+                             # (fewest sightings) ran to a speed map 131 % off (log-likelihood 22,036; 42,665 this way)
+FULL_KNOT_DT, FULL_ROUNDS, FULL_ITERATIONS = 0.25, 2, 15
+REGIONAL_ROUNDS, REGIONAL_TOL = 40, 0.02      # EM rounds of regional_motion_noise's k's on the fine graph; stop when
+                                              # none moves by 2 % (slow where sightings say little about single steps)
+
+
+# --------------------------------------------------------------------------- the graph
+
+@dataclass(frozen=True)
+class Layout:
+    """Pose knots and the command steps (padded to a common length) between consecutive knots."""
+
+    knots: np.ndarray        # (K,) pose-step index of each knot
+    seg_idx: np.ndarray      # (K-1, kmax) command step of each slot (0 in padding)
+    seg_dt: np.ndarray       # (K-1, kmax) step length (0 in padding)
+    obs_knot: np.ndarray     # (N,) knot of each observation
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.knots)
+
+    @property
+    def seg_time(self) -> np.ndarray:
+        return self.seg_dt.sum(axis=1)
+
+
+def layout(log: Log, knot_dt: float) -> Layout:
+    """Knots every ``knot_dt`` seconds, at every observation's step, and at the first and last pose."""
+    tp = log.pose_times
+    T = log.steps
+    regular = np.searchsorted(tp, np.arange(tp[0], tp[-1], knot_dt))
+    knots = np.unique(np.concatenate([regular, log.obs_step, [0, T]])).astype(int)
+    n = np.diff(knots)
+    kmax = int(n.max())
+    slot = np.arange(kmax)[None, :]
+    mask = slot < n[:, None]
+    idx = np.where(mask, knots[:-1, None] + slot, 0)
+    dt = np.where(mask, log.dt[idx], 0.0)
+    return Layout(knots, idx, dt, np.searchsorted(knots, log.obs_step))
+
+
+@dataclass
+class State:
+    poses: np.ndarray        # (K, 3)
+    params: np.ndarray       # (P,) command-model coefficients
+    poly: np.ndarray         # (D+1,)
+
+
+class Problem:
+    """The graph of one continuous-command log under fixed noise levels, linearised in numpy.
+
+    ``use`` masks (reading, bearing) say which sightings take part (outliers set aside). With the
+    regional_motion_noise effect each segment's forward and turn sigmas come from its region's k's,
+    the region taken at the knot ``poses`` (fixed for the problem's life, like every noise level).
+    """
+
+    def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None,
+                 poses: np.ndarray | None = None):
+        self.log, self.lay = log, lay
+        cm: CommandModel = model.command
+        bv, bw = cm.basis(log.controls, log.dt)
+        self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
+        ref = float(np.median(log.dt))
+        self.motion_sigma = (np.asarray(model.motion_noise, float)[None, :]
+                             * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None])
+        self.seg_region = None
+        if RMN.RegionalMotionNoise.name in model.effects:
+            if poses is None:
+                raise ValueError("regional_motion_noise: the problem needs the knot poses to place its segments")
+            regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
+            self.seg_region = regions.of(np.asarray(poses)[:-1, :2])
+            v = cm.velocities(log.controls, log.dt)[lay.seg_idx]
+            self.seg_r = np.sum(np.abs(v[..., 0]) * lay.seg_dt, axis=1)
+            self.seg_turn = np.sum(np.abs(v[..., 2]) * lay.seg_dt, axis=1)
+            vr, vt = RMN.variances(k[self.seg_region], self.seg_r, self.seg_turn)
+            self.motion_sigma[:, 0], self.motion_sigma[:, 2] = np.sqrt(vr), np.sqrt(vt)
+        lm = log.landmark_xy[log.landmark_index]
+        r, b = ~np.isnan(log.obs_reading), ~np.isnan(log.obs_bearing)
+        if use is not None:
+            r, b = r & use[0], b & use[1]
+        self.r_sel, self.b_sel = r, b
+        self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
+        self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
+        self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
+        self.lens_k = lens_k(model)
+        self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
+        nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
+        self.p_mean = nominal.params
+        self.p_sigma = PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
+
+    def rows(self, st: State):
+        P = st.poses
+        e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
+        w = 1.0 / self.motion_sigma
+        ae, aJ = e * w, [j * w[:, :, None] for j in J]
+        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
+        if self.lens_k:          # reading = f(d) (1 + k ia^2), the image angle ia = bearing (fixed camera)
+            ia, Jia = factors.bearing.error(P[self.r_knot], self.r_lm, np.zeros(len(self.r_z)))
+            sc = 1.0 + self.lens_k * ia ** 2
+            f = e + self.r_z[:, None]
+            J = [sc[:, :, None] * J[0] + (2 * self.lens_k * f * ia)[:, :, None] * Jia[0], sc[:, :, None] * J[1]]
+            e = sc * f - self.r_z[:, None]
+        re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
+        w = robust.huber(re)
+        re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
+        e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
+        be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
+        w = robust.huber(be)
+        be, bJ = be * w, bJ * w[:, None]
+        pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
+        return ae, aJ, re, rJ, be, bJ, pe
+
+    def cost(self, st: State) -> float:
+        ae, _, re, _, be, _, pe = self.rows(st)
+        return 0.5 * float(np.sum(ae ** 2) + np.sum(re ** 2) + np.sum(be ** 2) + np.sum(pe ** 2))
+
+    def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
+        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
+        unit3 = gtsam.noiseModel.Unit.Create(3)
+        g = gtsam.GaussianFactorGraph()
+        for i in range(self.lay.n_poses - 1):
+            if poses_only:
+                g.add(X(i), Ha[i], X(i + 1), Hb[i], -ae[i], unit3)
+            else:
+                g.add(X(i), Ha[i], X(i + 1), Hb[i], M(0), Hp[i], -ae[i], unit3)
+        D = self.n_poly
+        knot = np.concatenate([self.r_knot, self.b_knot])
+        Jp = np.concatenate([rJ[0], bJ])
+        Jc = np.concatenate([rJ[1], np.zeros((len(self.b_knot), D))])
+        e = np.concatenate([re, be])
+        order = np.argsort(knot, kind="stable")
+        G.add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only)
+        if poses_only:
+            return g
+        Pn = self.n_params
+        g.add(M(0), np.diag(1 / self.p_sigma), -pe[:Pn], gtsam.noiseModel.Unit.Create(Pn))
+        g.add(C(0), np.eye(D) / POLY_PRIOR_SIGMA, -pe[Pn:], gtsam.noiseModel.Unit.Create(D))
+        return g
+
+    def retract(self, st: State, delta: gtsam.VectorValues) -> State:
+        poses = G.retract_poses(st.poses, delta)
+        if not delta.exists(C(0)):
+            return State(poses, st.params, st.poly)
+        return State(poses, st.params + np.asarray(delta.at(M(0))), st.poly + np.asarray(delta.at(C(0))))
+
+    def keys_dims(self) -> list[tuple[int, int]]:
+        return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_params), (C(0), self.n_poly)]
+
+    def ordering(self, poses_only: bool = False) -> gtsam.Ordering:
+        """Poses in time order, then the command map and polynomial (see :func:`casm_graph.graph.table.elimination_order`)."""
+        keys = [X(i) for i in range(self.lay.n_poses)]
+        return gtsam.Ordering(keys if poses_only else keys + [M(0), C(0)])
+
+    def jacobian(self, st: State, poses_only: bool = False):
+        """Whitened sparse Jacobian, residual and the row groups of each noise channel."""
+        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
+        K, Pn, D = self.lay.n_poses, self.n_params, self.n_poly
+        n_act, n_r, n_b = 3 * (K - 1), len(re), len(be)
+        rows, cols, vals = [], [], []
+
+        def block(row0, J, col0):
+            _, m, d = J.shape
+            rows.append(np.broadcast_to(row0[:, None, None] + np.arange(m)[None, :, None], J.shape).ravel())
+            cols.append(np.broadcast_to(col0[:, None, None] + np.arange(d)[None, None, :], J.shape).ravel())
+            vals.append(J.ravel())
+
+        seg = np.arange(K - 1)
+        block(3 * seg, Ha, 3 * seg)
+        block(3 * seg, Hb, 3 * (seg + 1))
+        block(n_act + np.arange(n_r), rJ[0][:, None, :], 3 * self.r_knot)
+        block(n_act + n_r + np.arange(n_b), bJ[:, None, :], 3 * self.b_knot)
+        n_rows, n_cols = n_act + n_r + n_b, 3 * K
+        e = np.concatenate([ae.ravel(), re, be])
+        if not poses_only:
+            block(3 * seg, Hp, np.full(K - 1, 3 * K))
+            block(n_act + np.arange(n_r), rJ[1][:, None, :], np.full(n_r, 3 * K + Pn))
+            prior = np.concatenate([1 / self.p_sigma, np.full(D, 1 / POLY_PRIOR_SIGMA)])
+            rows.append(n_rows + np.arange(Pn + D))
+            cols.append(3 * K + np.arange(Pn + D))
+            vals.append(prior)
+            n_rows, n_cols = n_rows + Pn + D, n_cols + Pn + D
+            e = np.concatenate([e, pe])
+        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(n_rows, n_cols))
+        groups = {"forward": np.arange(0, n_act, 3), "lateral": np.arange(1, n_act, 3),
+                  "turn": np.arange(2, n_act, 3), "reading": n_act + np.arange(n_r),
+                  "bearing": n_act + n_r + np.arange(n_b)}
+        return A, e, groups
+
+
+def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, poses_only: bool = False) -> Model:
+    """Every noise level re-estimated at the current optimum, degrees of freedom accounted for.
+
+    With regional_motion_noise, each region's (k_r, k_t, k_d) are refitted by maximum likelihood to its
+    segments' expected squared forward and turn errors, an EM step: E[eps^2] = sigma^2 (w^2 + h), w the
+    whitened residual and h the leverage of its row (the hat matrix's diagonal, exact). A region with
+    fewer than ``MIN_SEGMENTS`` segments keeps its k's and is recorded as undetermined (its count).
+    """
+    A, e, groups = problem.jacobian(st, poses_only=poses_only)
+    regional = problem.seg_region is not None
+    lu = noise.information_lu(A, np.arange(A.shape[1]))   # poses in time order, parameters last: little fill,
+                                                          # where minimum degree costs time quadratic in the poses
+    traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
+    new = noise.group_scales(e, groups, traces, huber=("reading", "bearing"))
+    m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
+    m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
+    m = np.maximum(m, MIN_MOTION_SIGMA)
+    model = model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
+                        bearing_sigma=model.bearing_sigma * new["bearing"])
+    if not regional:
+        return model
+    regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
+    n = len(problem.seg_region)
+    w = e[:3 * n].reshape(-1, 3)
+    h = np.clip(noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]]), lu=lu).reshape(2, n).T, 0.0, 1.0)
+    e2 = problem.motion_sigma[:, [0, 2]] ** 2 * (w[:, [0, 2]] ** 2 + h)
+    k_new = k.copy()
+    for g in range(regions.count):
+        sel = problem.seg_region == g
+        if sel.sum() >= RMN.MIN_SEGMENTS:
+            k_new[g] = RMN.estimate(problem.seg_r[sel], problem.seg_turn[sel], e2[sel, 0], e2[sel, 1], k[g])
+    counts = np.bincount(problem.seg_region, minlength=regions.count)
+    return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k_new, counts)})
+
+
+def lens_k(model: Model) -> float:
+    """The lens_distortion coefficient of a continuous-command model (0 without the effect)."""
+    return float(model.effects.get("lens_distortion", {}).get("k", 0.0))
+
+
+def predicted_reading(model: Model, distance: np.ndarray, image_angle: np.ndarray) -> np.ndarray:
+    """The sensor polynomial at ``distance``, with the lens_distortion factor when the model has it."""
+    return model.reading(distance) * (1.0 + lens_k(model) * image_angle ** 2)
+
+
+def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model) -> dict:
+    """Per sighting: distance and bearing from its pose, and the reading and bearing residuals
+    (measured minus predicted, in the sensor's units; NaN where not measured)."""
+    rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
+    d = np.hypot(rel[:, 0], rel[:, 1])
+    bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
+    return {"distance": d, "bearing": bearing, "reading": log.obs_reading - predicted_reading(model, d, bearing),
+            "bearing_residual": wrap(log.obs_bearing - bearing)}
+
+
+def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GATE) -> tuple[np.ndarray, np.ndarray]:
+    """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
+    res = sighting_residuals(log, poses_at_obs, model)
+    r = np.abs(res["reading"]) / model.reading_sigma
+    b = np.abs(res["bearing_residual"]) / model.bearing_sigma
+    return ~(r > z), ~(b > z)
+
+
+def state(poses: np.ndarray, model: Model) -> State:
+    return State(np.asarray(poses, float).copy(), model.command.params.copy(), np.asarray(model.reading_poly, float).copy())
+
+
+def with_state(model: Model, st: State) -> Model:
+    return model.with_(command=model.command.with_params(st.params), reading_poly=st.poly.copy())
+
+
+def step_velocities(log: Log, model: Model) -> np.ndarray:
+    """(T, 3) body-frame velocity of every command step under the model."""
+    return model.command.velocities(log.controls, log.dt)
+
+
+def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
+    poses = G.integrate(start, model.command.velocities(controls, dt) * dt[:, None])
+    poses[:, 2] = wrap(poses[:, 2])
+    return poses
+
+
+def fill_in(log: Log, model: Model, knots: np.ndarray, knot_poses: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses: each knot-to-knot stretch dead-reckoned, its closure error spread linearly."""
+    return G.fill_between(knots, knot_poses, step_velocities(log, model) * log.dt[:, None])
+
+
+# --------------------------------------------------------------------------- global start
+
+@dataclass
+class Start:
+    poses: np.ndarray            # (T+1, 3)
+    model: Model
+    hypothesis: tuple[float, float]
+    log_evidence: float
+    windows_placed: float        # fraction of windows whose start pose the sightings fixed
+    slope: float = float("nan")  # a range sensor's start slope (reading = slope d)
+    alternatives: list = field(default_factory=list)   # runner-up range slopes' Starts, best agreement first
+
+
+def _inverse(poly: np.ndarray, lo: float, hi: float):
+    """Distance as a function of the reading, by interpolation on the monotone part of ``poly``."""
+    d = np.linspace(lo, hi, 400)
+    r = np.polynomial.polynomial.polyval(d, poly)
+    keep = np.flatnonzero(np.diff(r) > 0) if r[-1] > r[0] else np.flatnonzero(np.diff(r) < 0)
+    d, r = d[keep], r[keep]
+    order = np.argsort(r)
+    return lambda z: np.interp(z, r[order], d[order])
+
+
+def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: np.ndarray,
+                headings: np.ndarray, spread: float = 0.15):
+    """Start pose of one window from its sightings, searching the start heading on a grid.
+
+    Sighting i, taken after the robot moved ``rel[i]`` = (dx, dy, dtheta) in the window-start frame,
+    places the window start at landmark - dist * u(theta0 + dtheta + bearing) - R(theta0) (dx, dy)
+    for every candidate theta0; the heading whose placements agree best (robust spread) wins.
+    Returns (x0, y0, theta0) and the winning cost (summed capped squared spread in ``spread`` units).
+    """
+    th = headings[:, None] + rel[None, :, 2] + bearing[None, :]
+    c0, s0 = np.cos(headings)[:, None], np.sin(headings)[:, None]
+    x = fix_lm[None, :, 0] - dist * np.cos(th) - (c0 * rel[None, :, 0] - s0 * rel[None, :, 1])
+    y = fix_lm[None, :, 1] - dist * np.sin(th) - (s0 * rel[None, :, 0] + c0 * rel[None, :, 1])
+    mx, my = np.median(x, axis=1, keepdims=True), np.median(y, axis=1, keepdims=True)
+    cost = np.minimum(((x - mx) ** 2 + (y - my) ** 2) / spread ** 2, 9.0).sum(axis=1)
+    i = int(np.argmin(cost))
+    return np.array([mx[i, 0], my[i, 0], headings[i]]), float(cost[i])
+
+
+def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: float = INIT_WINDOW,
+               cell: float = 0.1) -> Start:
+    """Global start from nothing but the log and the map.
+
+    1. The sensor hypothesis (reading = k d**p) by the evidence of the grid smoother of
+       :func:`casm_graph.fit.initialise.locate`; a range (p = +1) starts as the line reading = k d.
+    2. The command maps start at the nominal velocity = command (the robot's own commands are the
+       only velocity scale in the log); the graph learns them.
+    3. Each ``window`` seconds with three or more sightings gets its start pose by
+       :func:`window_pose` (a global search over its start heading, sightings placed by nominal
+       dead reckoning within the window); the trajectory is dead-reckoned from window to window.
+    """
+    T, tp, dt = log.steps, log.pose_times, log.dt
+    t0 = tp[0]
+    n_knots = int(np.ceil((tp[-1] - t0) / knot_dt)) + 1
+    obs_knot = np.clip(np.round((log.obs_t - t0) / knot_dt).astype(int), 0, n_knots - 1)
+    n_c = int(np.ceil((tp[-1] - t0) / (3 * knot_dt))) + 1
+    c_knot = np.clip(np.round((log.obs_t - t0) / (3 * knot_dt)).astype(int), 0, n_c - 1)
+    speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
+    loc = locate(log, obs_knot, n_knots, knot_dt, c_knot, n_c, len(model.reading_poly) - 1, cell,
+                 speed=max(speed, 0.05))
+    p_hyp, k_hyp = loc.hypothesis
+    poly0 = loc.poly
+    if p_hyp == 1.0:
+        poly0 = np.zeros(len(model.reading_poly))
+        poly0[1] = k_hyp
+    cm = model.command
+    nominal = replace(for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0), lag=cm.lag)
+    out = model.with_(command=nominal, reading_poly=poly0)
+
+    ob = np.flatnonzero(~np.isnan(log.obs_bearing) & ~np.isnan(log.obs_reading))
+    ob = ob[np.argsort(log.obs_step[ob], kind="stable")]
+    step = log.obs_step[ob]
+    lm = log.landmark_xy[log.landmark_index[ob]]
+    win_of_step = np.floor((tp - t0) / window).astype(int)
+    n_win = int(win_of_step[-1]) + 1
+    win_start = np.searchsorted(win_of_step, np.arange(n_win))
+    w_of = win_of_step[step]
+    headings = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    spans = [(int(win_start[w]), int(win_start[w + 1]) if w + 1 < n_win else T) for w in range(n_win)]
+    rels = [dead_reckon(log.controls[a:b], dt[a:b], out, np.zeros(3)) for a, b in spans]
+    sels = [np.flatnonzero(w_of == w) for w in range(n_win)]
+    d_max = 1.5 * np.ptp(log.landmark_xy, axis=0).max() + 3.0
+
+    def place(poly):
+        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob])
+        starts, total = {}, 0.0
+        for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
+            if len(sel) >= 3:
+                starts[w], c = window_pose(lm[sel], dist[sel], log.obs_bearing[ob[sel]], rel[step[sel] - a], headings)
+                total += c
+        return starts, total
+
+    def start_from(poly, starts):
+        m = out.with_(reading_poly=poly)
+        poses = np.empty((T + 1, 3))
+        prev = None
+        for w, (a, b) in enumerate(spans):
+            begin = starts.get(w, prev if prev is not None else np.array([*log.landmark_xy.mean(axis=0), 0.0]))
+            seg = dead_reckon(log.controls[a:b], dt[a:b], m, begin)
+            poses[a:b + 1] = seg
+            prev = seg[-1]
+        res = log.obs_reading[ob] - np.polynomial.polynomial.polyval(np.hypot(*(lm - poses[step, :2]).T), poly)
+        m = m.with_(reading_sigma=float(max(1.4826 * np.median(np.abs(res)), 1e-6)))
+        return Start(poses, m, loc.hypothesis, loc.log_evidence, len(starts) / max(n_win, 1), float(poly[1]))
+
+    if p_hyp != 1.0:
+        return start_from(poly0, place(poly0)[0])
+    # a range line: its slope by how well the windows agree, the runners-up kept for the fit to try
+    tried = sorted(((*place(poly0 * f)[::-1], f) for f in SLOPE_FACTORS), key=lambda t: t[0])
+    ranked = [start_from(poly0 * f, starts) for _, starts, f in tried[:SLOPE_STARTS]]
+    return replace(ranked[0], alternatives=ranked[1:])
+
+
+# --------------------------------------------------------------------------- the fit
+
+def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1) -> Model:
+    """The paper's start for continuous commands: zero velocity for every command, a flat sensor line."""
+    if log.controls is None or log.control_names != ("v", "w"):
+        raise LogError("commands.csv: the continuous-command model needs columns 'v,w' "
+                       f"(this log has {','.join(log.control_names) or 'action'})")
+    both = int(np.sum(~np.isnan(log.obs_reading) & ~np.isnan(log.obs_bearing)))
+    if both < MIN_SIGHTINGS or log.pose_times[-1] - log.pose_times[0] < INIT_WINDOW:
+        raise LogError(f"observations.csv: {both} sightings with reading and bearing over "
+                       f"{log.pose_times[-1] - log.pose_times[0]:.1f} s; calibrating continuous commands "
+                       f"needs at least {MIN_SIGHTINGS} and {INIT_WINDOW:g} s (action-table logs need an 'action' column)")
+    poly = np.zeros(sensor_degree + 1)
+    poly[0] = float(np.nanmedian(log.obs_reading))
+    return Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=poly,
+                 reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
+                 motion_noise=np.array(PAPER_MOTION_NOISE), command=for_commands(log.controls, v_degree, w_degree))
+
+
+def identity_model(log: Log, like: Model) -> Model:
+    """The uncalibrated models: actual velocity = command, reading = distance, no effects; noise levels of ``like``."""
+    poly = np.zeros(len(like.reading_poly))
+    poly[1] = 1.0
+    cm = for_commands(log.controls, len(like.command.v_coef) - 1, len(like.command.w_coef) - 1, gain=1.0)
+    return like.with_(command=cm, reading_poly=poly, effects={})
+
+
+def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, rounds: int, iterations: int,
+                    seed: int, label: str, trace: list, stages: list, progress: Progress,
+                    freeze: bool = False, last_noise: bool = True):
+    """Rounds of LM, each followed by gating of outliers and re-estimating the noise levels."""
+    use = None
+    its, h = 0, None
+    problem = st = None
+    for r in range(rounds):
+        problem = Problem(log, lay, model, use, poses)
+
+        def tick(c):
+            trace.append(c)
+            stages.append(label)
+            progress.step(0, cost=c)
+
+        st, h = least_squares(problem, state(poses, model), max_iterations=iterations, on_iteration=tick,
+                              freeze_parameters=freeze)
+        its += h.iterations
+        poses = st.poses
+        model = with_state(model, st)
+        if r < rounds - 1 or last_noise:
+            model = estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)
+            use = gate(log, poses[lay.obs_knot], model)
+        progress.step(1)
+    return model, poses, problem, st, its, bool(h.converged)
+
+
+def problem_log_likelihood(problem: "Problem", st, model: Model) -> float:
+    """log p(data, knots | model) at ``st``: the cost with its Gaussian normalisers (noise levels fixed)."""
+    sel, n_motion = problem.r_sel, problem.motion_sigma.size
+    log_det = (np.sum(np.log(problem.motion_sigma)) + sel.sum() * np.log(model.reading_sigma)
+               + problem.b_sel.sum() * np.log(model.bearing_sigma))
+    n = n_motion + int(sel.sum()) + int(problem.b_sel.sum())
+    return float(-problem.cost(st) - log_det - 0.5 * n * np.log(2 * np.pi))
+
+
+def log_likelihood(log: Log, lay: Layout, model: Model, knot_poses: np.ndarray) -> float:
+    """``problem_log_likelihood`` of a model and knot poses, sightings gated as a new round would gate them."""
+    problem = Problem(log, lay, model, gate(log, knot_poses[lay.obs_knot], model), knot_poses)
+    return problem_log_likelihood(problem, state(knot_poses, model), model)
+
+
+def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
+        marginals: bool = True) -> Fit:
+    """Calibrate a continuous-command log: global start, coarse graph in rounds, finer graph, marginals."""
+    progress = progress or Progress()
+    t0 = time.perf_counter()
+    start = start or start_model(log)
+    trace, stages = [], []
+    progress.stage("initialise", None)
+    init = initialise(log, start)
+    noise = {"motion_noise": np.asarray(start.motion_noise, float), "bearing_sigma": float(start.bearing_sigma)}
+    coarse = layout(log, COARSE_KNOT_DT)
+    starts = [init, *init.alternatives]
+    progress.stage("coarse graph", len(starts) * COARSE_HELD_ROUNDS + COARSE_ROUNDS)
+    held = []          # each start through the held rounds: (log-likelihood, model, knot poses, iterations, trace)
+    for s in starts:
+        t, g = [], []
+        m, kp, _, _, its, _ = optimise_rounds(log, coarse, s.model.with_(**noise), s.poses[coarse.knots],
+                                              COARSE_HELD_ROUNDS, COARSE_ITERATIONS, seed, "coarse, maps held",
+                                              t, g, progress, freeze=True)
+        held.append((log_likelihood(log, coarse, m, kp), m, kp, its, (t, g)))
+    best = max(range(len(held)), key=lambda i: held[i][0])
+    _, model, kp, _, (t, g) = held[best]
+    trace += t
+    stages += g
+    it0 = sum(h[3] for h in held)
+    model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, kp, COARSE_ROUNDS,
+                                               COARSE_ITERATIONS, seed, "coarse", trace, stages, progress)
+    it1 += it0
+    poses = fill_in(log, model, coarse.knots, kp)
+    full = layout(log, FULL_KNOT_DT)
+    it2 = 0
+    if RMN.RegionalMotionNoise.name in model.effects:
+        progress.stage("regional noise", REGIONAL_ROUNDS)
+        for r in range(REGIONAL_ROUNDS):
+            before = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
+            model, kp, _, _, its, _ = optimise_rounds(log, full, model, poses[full.knots], 1, FULL_ITERATIONS,
+                                                      seed + 200 + r, "regional", trace, stages, progress)
+            it2 += its
+            poses = fill_in(log, model, full.knots, kp)
+            after = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
+            if np.max(np.abs(np.log(after / before))) < REGIONAL_TOL:
+                break
+    progress.stage("full graph", FULL_ROUNDS)
+    model, kp, problem, st, its, converged = optimise_rounds(
+        log, full, model, poses[full.knots], FULL_ROUNDS, FULL_ITERATIONS, seed + 100, "full", trace, stages,
+        progress, last_noise=False)
+    it2 += its
+    poses = fill_in(log, model, full.knots, kp)
+    pose_std = np.full_like(poses, np.nan)
+    if marginals:
+        progress.stage("marginals", None)
+        m, ridge = gaussian_marginals(problem.linearize(st), problem.keys_dims())
+        if ridge:
+            warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
+        body = np.empty((full.n_poses, 3))
+        cov_xy = np.empty((full.n_poses, 2, 2))
+        for i in range(full.n_poses):
+            cov = m.marginalCovariance(X(i))
+            body[i], cov_xy[i] = np.sqrt(np.diag(cov)), cov[:2, :2]
+        knot_std = world_std(kp, body, cov_xy)
+        t = log.pose_times
+        pose_std = np.column_stack([np.interp(t, t[full.knots], knot_std[:, j]) for j in range(3)])
+        pstd = np.sqrt(np.diag(m.marginalCovariance(M(0))))
+        cstd = np.sqrt(np.diag(m.marginalCovariance(C(0))))
+        model = model.with_(command=model.command.with_params(st.params, pstd), reading_poly_std=cstd)
+    sel = problem.r_sel
+    d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[sel]
+    ll = problem_log_likelihood(problem, st, model)
+    model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
+                        fit={"method": "graph", "iterations": it1 + it2,
+                             "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": ll,
+                             "converged": converged, "knot_dt": FULL_KNOT_DT,
+                             "start_slopes": [[round(s.slope, 6), round(h[0], 1)] for s, h in zip(starts, held)
+                                              if np.isfinite(s.slope)],
+                             "outliers_set_aside": {"reading": int((~sel & ~np.isnan(log.obs_reading)).sum()),
+                                                    "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())}})
+    return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=it1 + it2,
+               converged=converged, log_likelihood=ll,
+               notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
+                      "start_slope": starts[best].slope,
+                      "windows_placed": starts[best].windows_placed, "start_model": starts[best].model,
+                      "start_poses": starts[best].poses, "knots": full.knots})
+
+
+# --------------------------------------------------------------------------- effects for continuous commands
+EFFECTS = ("actuator_lag", "lens_distortion")     # catalog effects profiled and diagnosed on continuous-command logs
+NOISE_EFFECTS = (RMN.RegionalMotionNoise.name,)   # set by the noise step of every round, added on request only
+PROFILE_GRID = {"actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),        # tau, s
+                "lens_distortion": (-0.4, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.4)}   # k, per rad^2
+PROFILE_BOUNDS = {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)}
+PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
+PROFILE_ITERATIONS = 8
+
+
+def check_effects(names) -> None:
+    """LogError unless every name is an effect a continuous-command log can take."""
+    other = sorted(set(names) - set(EFFECTS) - set(NOISE_EFFECTS))
+    if other:
+        raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
+                       f"{', '.join(EFFECTS + NOISE_EFFECTS[:-1])} and {NOISE_EFFECTS[-1]} are available")
+
+
+def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Model) -> Model:
+    """``model`` with regional_motion_noise on ``regions``, every region starting from ``fitted``'s
+    forward and turn noise per median step (the turn variance shared half and half by k_t and k_d)."""
+    v = np.abs(fitted.command.velocities(log.controls, log.dt)) * log.dt[:, None]
+    r, turn = max(float(v[:, 0].mean()), 1e-6), max(float(v[:, 2].mean()), 1e-6)
+    sf, _, st = np.asarray(fitted.motion_noise, float)
+    k = np.tile([sf ** 2 / r, 0.5 * st ** 2 / turn, 0.5 * st ** 2 / r], (regions.count, 1))
+    return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k)})
+
+
+def with_effect(model: Model, name: str, value: float) -> Model:
+    """``model`` with one continuous-log effect's parameter set (0 switches it off)."""
+    check_effects([name])
+    param = {"actuator_lag": "tau", "lens_distortion": "k"}[name]
+    effects = {**{k: v for k, v in model.effects.items() if k != name},
+               **({name: {param: float(value)}} if value else {})}
+    if name == "actuator_lag":
+        return model.with_(command=replace(model.command, lag=float(value)), effects=effects)
+    return model.with_(effects=effects)
+
+
+def effect_value(model: Model, name: str) -> float:
+    return model.command.lag if name == "actuator_lag" else lens_k(model)
+
+
+@dataclass
+class Profile:
+    """Profile log-likelihood of the coarse graph against one effect's parameter (noise at its maximum, outliers fixed)."""
+
+    effect: str
+    value: float                   # the maximum
+    gain: float                    # log-likelihood at the maximum minus with the effect off (nats)
+    n_data: int                    # residual rows, for BIC
+    grid: list                     # (value, log-likelihood) pairs evaluated, in order
+
+    @property
+    def delta_bic(self) -> float:
+        return float(-2 * self.gain + np.log(self.n_data))
+
+
+def profile(log: Log, fit: Fit, name: str) -> Profile:
+    """Profile one continuous-log effect's parameter on the coarse graph of a fitted log.
+
+    Every evaluation sets the parameter, keeps ``fit``'s set-aside sightings, lets poses, command
+    map and polynomial re-settle (LM from ``fit``'s own), moves each noise level to its
+    maximum-likelihood value and re-settles once more; its value is the log-likelihood with the
+    noise levels concentrated out, so two settings compare as a likelihood ratio on the same data.
+    A grid brackets the maximum, golden-section search refines it.
+    """
+    lay = layout(log, COARSE_KNOT_DT)
+    use = gate(log, fit.poses[log.obs_step], fit.model)
+    start = fit.poses[lay.knots]
+    seen: dict[float, float] = {}
+
+    def value(x: float) -> float:
+        x = round(float(x), 5)
+        if x not in seen:
+            m = with_effect(fit.model, name, x)
+            problem = Problem(log, lay, m, use, start)
+            try:
+                st, _ = least_squares(problem, state(start, m), max_iterations=PROFILE_ITERATIONS)
+                m = _ml_noise(problem, st, with_state(m, st))
+                problem = Problem(log, lay, m, use, st.poses)
+                st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
+                seen[x] = _concentrated_log_likelihood(problem, st)
+            except RuntimeError:            # GTSAM: the graph is indeterminate at this setting, no maximum here
+                seen[x] = -np.inf
+        return seen[x]
+
+    grid = list(PROFILE_GRID[name])
+    lo_b, hi_b = PROFILE_BOUNDS[name]
+    vals = [value(x) for x in grid]
+    i = int(np.argmax(vals))
+    if i == len(grid) - 1:
+        grid.append(hi_b)
+        value(hi_b)
+    elif i == 0 and grid[0] > lo_b:
+        grid.insert(0, lo_b)
+        value(lo_b)
+        i += 1
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    g = (np.sqrt(5) - 1) / 2
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    while hi - lo > PROFILE_TOL[name]:
+        if value(a) >= value(b):
+            hi, b = b, a
+            a = hi - g * (hi - lo)
+        else:
+            lo, a = a, b
+            b = lo + g * (hi - lo)
+    best = max(seen, key=seen.get)
+    n = (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
+         + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
+    return Profile(effect=name, value=float(best), gain=float(seen[best] - value(0.0)), n_data=n,
+                   grid=sorted(seen.items()))
+
+
+def _group_sums(problem: Problem, st: State) -> dict:
+    ae, _, re, _, be, _, _ = problem.rows(st)
+    return {"forward": ae[:, 0] ** 2, "lateral": ae[:, 1] ** 2, "turn": ae[:, 2] ** 2,
+            "reading": re ** 2, "bearing": be ** 2}
+
+
+def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
+    """Every noise level scaled to its maximum-likelihood value at ``st`` (whitened mean square 1)."""
+    g = {k: float(np.sqrt(np.mean(v))) for k, v in _group_sums(problem, st).items()}
+    m = np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]]
+    m[1] = min(m[1], m[0])      # as in estimate_noise: lateral noise no larger than forward
+    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g["reading"],
+                       bearing_sigma=model.bearing_sigma * g["bearing"])
+
+
+def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
+    """log p(data | poses, model) with each noise group's scale at its maximum, up to a constant
+    that does not depend on the poses or the command model: -n/2 log(sigma_ML^2) summed over groups."""
+    base = {"forward": problem.motion_sigma[:, 0], "lateral": problem.motion_sigma[:, 1],
+            "turn": problem.motion_sigma[:, 2]}
+    out = 0.0
+    for k, w2 in _group_sums(problem, st).items():
+        ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
+        out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
+    return float(out)
+
+
+def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
+                     progress: Progress | None = None, marginals: bool = True,
+                     regions: RMN.Regions | None = None) -> Fit:
+    """``fit`` with continuous-log effects: fit without them, then for each profiled effect in turn
+    profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
+    profiled: its regions (``regions``, default a 3 x 2 grid around the landmarks) start from the
+    latest fit's noise levels and the noise step of every round of one more fit sets their k's."""
+    progress = progress or Progress()
+    start = start or start_model(log)
+    check_effects(effects)
+    profiled = [n for n in effects if n in EFFECTS]
+    noisy = [n for n in effects if n in NOISE_EFFECTS]
+    out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects)
+    profiles = []
+    for i, name in enumerate(profiled):
+        progress.stage(f"{name} profile", None)
+        prof = profile(log, out, name)
+        profiles.append(prof)
+        start = with_effect(start, name, prof.value)
+        out = fit(log, start, seed=seed, progress=progress,
+                  marginals=marginals and i == len(profiled) - 1 and not noisy)
+    if noisy:
+        before = out.log_likelihood
+        start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals)
+        out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
+    out.notes["profiles"] = profiles
+    return out

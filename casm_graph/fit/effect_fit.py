@@ -1,0 +1,71 @@
+"""Fit a model with effects on the full graph, warm-started from a fitted model and its trajectory.
+
+Rounds of least squares over poses, table, polynomial and the effects' parameters, each followed
+by the noise step (sigmas and noise-only effect parameters), as the base method does.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from casm_graph.fit.solve import least_squares
+from casm_graph.graph.augmented import AState, EffectProblem, estimate_noise, instantiate, theta_from_model
+from casm_graph.io.log import Log
+from casm_graph.models.effects import Effect
+from casm_graph.models.model import Model
+
+ROUNDS = 3
+ITERATIONS = 10
+
+
+@dataclass
+class EffectFit:
+    model: Model                 # with ``effects`` filled in
+    poses: np.ndarray
+    theta: np.ndarray
+    effects: list
+    problem: EffectProblem
+    state: AState
+    log_likelihood: float
+    iterations: int
+    cost: list
+
+
+def describe(effects: list[Effect], problem: EffectProblem, theta: np.ndarray) -> dict:
+    return {e.name: e.describe(theta[s]) for e, s in zip(effects, problem.slices)}
+
+
+def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | None = None,
+        rounds: int = ROUNDS, iterations: int = ITERATIONS, obs_mask: np.ndarray | None = None,
+        seed: int = 0, fit_parameters: bool = True, on_iteration=None, rel_tol: float = 1e-6,
+        fit_noise: bool = True) -> EffectFit:
+    """Least squares with ``effects`` from ``model`` and ``poses`` (T+1, 3); noise re-estimated each round.
+
+    ``fit_parameters=False`` keeps table, polynomial, effects and noise where they are and only
+    moves the poses (how a given model is assessed on a log); ``fit_noise=False`` keeps only the
+    noise levels (and noise-only effect parameters) where they are.
+    """
+    effects = instantiate(effects, log)
+    th = theta_from_model(effects, model) if theta is None else np.asarray(theta, float)
+    cost, its = [], 0
+    problem = EffectProblem(log, model, effects, th, obs_mask)
+    st = problem.state(poses, model, th)
+    mixture = any(e.outlier_fraction(th[sl]) > 0 for e, sl in zip(effects, problem.slices))
+    # with fixed parameters one round, or two for a mixture, whose inlier weights follow the poses
+    for r in range(rounds if fit_parameters else 1 + mixture):
+        problem = EffectProblem(log, model, effects, st.theta, obs_mask)
+        problem.refresh_noise_state(st)
+        st, h = least_squares(problem, st, max_iterations=iterations, on_iteration=on_iteration,
+                              freeze_parameters=not fit_parameters, rel_tol=rel_tol)
+        its += h.iterations
+        cost.extend(h.cost)
+        model = model.with_(velocities=st.velocities, reading_poly=st.poly)
+        if fit_parameters and fit_noise:
+            model, theta_new = estimate_noise(problem, st, model, seed=seed + r)
+            st = AState(st.poses, st.velocities, st.poly, theta_new)
+    problem = EffectProblem(log, model, effects, st.theta, obs_mask)
+    problem.refresh_noise_state(st)
+    ll = problem.log_likelihood(st)
+    model = model.with_(effects=describe(effects, problem, st.theta))
+    return EffectFit(model, st.poses, st.theta, effects, problem, st, ll, its, cost)

@@ -1,0 +1,216 @@
+"""The factor-graph method: a global start, a coarse graph to settle the trajectory, then the full graph.
+
+1. :func:`casm_graph.fit.initialise.initialise` finds trajectory, table and sensor curve with no
+   least squares (no local minima to fall into).
+2. A coarse graph (a pose every ``stride`` steps) is optimised in rounds; after each round every
+   noise level is re-estimated from its residuals with the degrees-of-freedom correction of
+   :mod:`casm_graph.graph.noise`, so the motion noise starts at the paper's loose value and tightens as
+   the fit earns it.
+3. Sightings the coarse fit cannot explain by any Gaussian noise are pruned
+   (:mod:`casm_graph.fit.outliers`, as the paper prunes in its first EM iteration); the coarse
+   trajectory is filled in step by step and the full graph (a pose every step, as in the paper)
+   is optimised, its noise levels re-estimated once more, and GTSAM marginals give the
+   posterior std of every pose, velocity and coefficient.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import C, V, X
+from scipy.stats import norm
+
+from casm_graph.fit.initialise import initialise
+from casm_graph.fit.methods.base import Fit, Progress, register
+from casm_graph.fit.outliers import outlying, prune
+from casm_graph.fit.residuals import observation
+from casm_graph.fit.solve import least_squares
+from casm_graph.fit.solve import marginals as gaussian_marginals
+from casm_graph.fit.turns import realias
+from casm_graph.graph import noise
+from casm_graph.graph import table as G
+from casm_graph.io.log import Log
+from casm_graph.models.effects.false_detections import FalseDetections, inlier_weights, outlier_density
+from casm_graph.models.model import Model
+
+COARSE_STRIDE = 10
+COARSE_ROUNDS = 6
+COARSE_ITERATIONS = 5
+COARSE_RELAX = 1.0
+REALIAS_AFTER = (2, 4)
+FULL_ITERATIONS = 15
+FULL_ROUNDS = 2
+RIDGE_WARNING = ("the fitted graph is nearly singular (a poor fit or a log that cannot pin the model down): "
+                 "standard deviations computed with a ridge of {:g} x the largest information; treat them as lower bounds")
+
+
+def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0, relax: float = 1.0) -> Model:
+    """``model`` with every noise level re-estimated at the current optimum (see :mod:`noise`).
+
+    ``relax`` > 1 over-relaxes the fixed-point step (in log sigma), which otherwise creeps down
+    slowly from a loose start because the trajectory follows whatever freedom it is given.
+    """
+    A, e, groups = problem.jacobian(st)
+    traces = noise.hat_traces(A, groups, seed=seed, order=problem.column_order())
+    new = {k: v ** relax for k, v in noise.group_scales(e, groups, traces, counts=problem.counts,
+                                                         huber=("reading", "bearing")).items()}
+    m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
+    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
+                       bearing_sigma=model.bearing_sigma * new["bearing"])
+
+
+def fill_in(log: Log, model: Model, lay: G.Layout, knot_poses: np.ndarray) -> np.ndarray:
+    """(T+1, 3) poses: each coarse segment dead-reckoned step by step, its closure error spread linearly."""
+    return G.fill_between(lay.knots, knot_poses, model.velocity_of(log.action) * log.dt[:, None])
+
+
+def log_likelihood(cost: float, lay: G.Layout, log: Log, model: Model) -> float:
+    """Gaussian log-likelihood of the data terms at the optimum (GTSAM cost is half the chi-square)."""
+    n_r = int(np.sum(~np.isnan(log.obs_reading)))
+    n_b = int(np.sum(~np.isnan(log.obs_bearing)))
+    sig = np.asarray(model.motion_noise, float)
+    log_det = (np.sum(np.log(sig)) * (lay.n_poses - 1) + 1.5 * np.sum(np.log(lay.seg_steps))
+               + n_r * np.log(model.reading_sigma) + n_b * np.log(model.bearing_sigma))
+    n = 3 * (lay.n_poses - 1) + n_r + n_b
+    return float(-cost - log_det - 0.5 * n * np.log(2 * np.pi))
+
+
+def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: float) -> tuple[np.ndarray, float]:
+    """Every sighting's inlier weight under the false-detection mixture at ``fraction`` (the effect's own
+    formula), and the fraction's EM update: how ``--effect false_detections`` acts from the first round."""
+    r, b = observation(poses_at_obs, log, model)
+    lin = (np.where(np.isfinite(r), norm.logpdf(r, scale=model.reading_sigma), 0.0)
+           + np.where(np.isfinite(b), norm.logpdf(b, scale=model.bearing_sigma), 0.0))
+    finite = log.obs_reading[np.isfinite(log.obs_reading)]
+    w, _ = inlier_weights(lin, outlier_density(r, b, float(np.ptp(finite)) if len(finite) else 1.0), fraction)
+    return w, float(np.clip(np.mean(1.0 - w), 1e-4, 0.5))
+
+
+def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress, weight=None):
+    problem = G.Problem(log, lay, model, weight)
+
+    def tick(c):
+        cost.append(c)
+        stages.append(label)
+        progress.step(0, cost=c)
+
+    st, h = least_squares(problem, G.state(poses, model), max_iterations=iterations, on_iteration=tick)
+    model = model.with_(velocities=st.velocities, reading_poly=st.poly)
+    return problem, st, model, h
+
+
+def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) -> np.ndarray:
+    """Map-frame (sx, sy, stheta) from GTSAM's Pose2 marginals, which live in the body frame."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    cov = R @ body_cov_xy @ np.transpose(R, (0, 2, 1))
+    return np.column_stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), body_std[:, 2]])
+
+
+@dataclass
+class Coarse:
+    """The global start settled on a coarse graph: model, poses at every step, and how it got there."""
+
+    model: Model
+    poses: np.ndarray
+    cost: list
+    stages: list
+    iterations: int
+    realiased: list
+    init: object
+    fraction: float = 0.0          # false-detection share (the mixture's, when fitted)
+
+
+def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
+                 mixture: bool = False) -> Coarse:
+    """Stages 1-3 of the module docstring: global initialisation, then the coarse graph in rounds
+    (``mixture``: sightings weighted by the false-detection mixture, its share re-estimated each round)."""
+    progress = progress or Progress()
+    cost, stages, iterations = [], [], 0
+    realiased: list[int] = []
+    progress.stage("initialise", None)
+    init = initialise(log, start)
+    model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float),
+                             bearing_sigma=float(start.bearing_sigma))
+    lay = G.layout(log, model, stride=COARSE_STRIDE)
+    poses = init.poses[lay.knots]
+    fraction, weight = (FalseDetections.start[0] if mixture else 0.0), None
+    progress.stage("coarse graph", COARSE_ROUNDS)
+    for r in range(COARSE_ROUNDS):
+        if mixture:
+            weight, fraction = mixture_weights(log, poses[lay.obs_knot], model, fraction)
+        problem, st, model, h = _optimise(log, lay, model, poses, COARSE_ITERATIONS, cost, stages,
+                                          "coarse", progress, weight)
+        iterations += h.iterations
+        poses = st.poses
+        model = estimate_noise(problem, st, model, seed=seed + r, relax=COARSE_RELAX)
+        if r in REALIAS_AFTER:
+            model, poses, changed = realias(log, lay, model, poses)
+            realiased.extend(changed)
+        progress.step(1)
+    return Coarse(model, fill_in(log, model, lay, poses), cost, stages, iterations, realiased, init, fraction)
+
+
+@register("graph")
+def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
+        marginals: bool = True, mixture: bool = False) -> Fit:
+    """Calibrate ``log`` from the paper's start ``start`` with the factor graph (``mixture``: with the
+    false-detection mixture in every round, as ``--effect false_detections`` asks)."""
+    progress = progress or Progress()
+    t0 = time.perf_counter()
+    co = coarse_start(log, start, seed, progress, mixture)
+    fraction, weight = co.fraction, None
+    model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
+    realiased, init = co.realiased, co.init
+    pruned = outlying(log, model, poses)
+    log = prune(log, pruned)
+
+    full = G.layout(log, model, stride=1)
+    progress.stage("full graph", FULL_ROUNDS)
+    for r in range(FULL_ROUNDS):
+        if mixture:
+            weight, fraction = mixture_weights(log, poses[log.obs_step], model, fraction)
+        problem, st, model, h = _optimise(log, full, model, poses, FULL_ITERATIONS, cost, stages,
+                                          "full", progress, weight)
+        iterations += h.iterations
+        poses = st.poses
+        if r < FULL_ROUNDS - 1:
+            model = estimate_noise(problem, st, model, seed=seed + 100 + r)
+        progress.step(1)
+    converged = h.converged
+    final_cost = problem.cost(st)
+
+    pose_std, ridge = np.full_like(poses, np.nan), None
+    if marginals:
+        progress.stage("marginals", None)
+        m, ridge = gaussian_marginals(problem.linearize(st), problem.keys_dims())
+        if ridge:
+            warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
+        cov_xy = np.empty((full.n_poses, 2, 2))
+        for i in range(full.n_poses):
+            cov = m.marginalCovariance(X(i))
+            pose_std[i] = np.sqrt(np.diag(cov))
+            cov_xy[i] = cov[:2, :2]
+        keys = gtsam.KeyVector([V(a) for a in range(full.n_actions)] + [C(0)])
+        joint = m.jointMarginalCovariance(keys)
+        vstd = np.array([np.sqrt(np.diag(joint.at(V(a), V(a)))) for a in range(full.n_actions)])
+        ccov = np.asarray(joint.at(C(0), C(0)))
+        model = model.with_(velocity_std=vstd, reading_poly_std=np.sqrt(np.diag(ccov)), reading_poly_cov=ccov)
+        pose_std = world_std(poses, pose_std, cov_xy)
+    d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)
+    d = d[~np.isnan(log.obs_reading)]
+    ll = log_likelihood(final_cost, full, log, model)
+    model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
+                        fit={"method": "graph", "iterations": iterations,
+                             "seconds": round(time.perf_counter() - t0, 3),
+                             "log_likelihood": ll, "converged": bool(converged),
+                             "outliers_pruned": int(pruned.sum())},
+                        effects={FalseDetections.name: {"fraction": fraction}} if mixture else {})
+    return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
+               iterations=iterations, converged=converged, log_likelihood=ll,
+               notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
+                      "realiased_actions": realiased, "marginals_ridge": ridge,
+                      "outliers_pruned": np.flatnonzero(pruned).tolist()})

@@ -1,0 +1,111 @@
+"""Levenberg-Marquardt driven from Python over a :class:`casm_graph.graph.table.Problem`.
+
+GTSAM's stock optimizers call a ``CustomFactor`` back into Python per factor and copy the whole
+``Values`` each time; here each iteration is one numpy pass to linearise, one GTSAM multifrontal
+solve of the damped linear system, and one numpy pass to evaluate the trial.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from casm_graph.graph.table import Problem, State
+
+
+@dataclass
+class History:
+    """Cost (GTSAM error = half the whitened squared residual) after each accepted iteration."""
+
+    cost: list[float] = field(default_factory=list)
+    iterations: int = 0
+    converged: bool = False
+
+
+def _damping(keys_dims, lam: float) -> gtsam.GaussianFactorGraph:
+    g = gtsam.GaussianFactorGraph()
+    s = np.sqrt(lam)
+    for key, dim in keys_dims:
+        g.add(key, s * np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim))
+    return g
+
+
+def marginals(lin: gtsam.GaussianFactorGraph, keys_dims) -> tuple[gtsam.Marginals, float]:
+    """GTSAM marginals of ``lin``; an ill-conditioned system is retried with a tiny ridge.
+
+    Returns the marginals and the ridge used (0 when none was needed), relative to the largest
+    diagonal entry of the information matrix, so callers can say the std are regularised.
+    """
+    try:
+        return gtsam.Marginals(lin, gtsam.VectorValues()), 0.0
+    except RuntimeError:
+        pass
+    _, col, val = lin.sparseJacobian_()                   # 1-based (row, column, value); b is the last column
+    n = sum(d for _, d in keys_dims)
+    keep = col <= n
+    top = float(np.bincount(col[keep].astype(int), weights=val[keep] ** 2).max())
+    for rel in (1e-10, 1e-8, 1e-6):
+        system = lin.clone()
+        system.push_back(_damping(keys_dims, rel * top))
+        try:
+            return gtsam.Marginals(system, gtsam.VectorValues()), rel
+        except RuntimeError:
+            continue
+    raise RuntimeError("the fitted model leaves the trajectory undetermined: no marginals even with a ridge")
+
+
+def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol: float = 1e-6,
+                  lam: float = 1e-6, on_iteration=None, freeze_parameters: bool = False) -> tuple[State, History]:
+    """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history.
+
+    ``freeze_parameters`` holds the velocity table and polynomial where they are (poses only).
+    A problem with ``normal_equations``/``solve_damped`` (the effect graph, whose parameters form one
+    dense block) is solved by its own pose-chain elimination; otherwise GTSAM solves the linear graph.
+    """
+    hist = History()
+    keys_dims = problem.keys_dims()
+    if freeze_parameters:
+        keys_dims = keys_dims[:problem.lay.n_poses]
+    cost = problem.cost(st)
+    hist.cost.append(cost)
+    direct = hasattr(problem, "solve_damped")
+    damping = {}                # lam moves by factors of ten: each level's damping graph is built once
+    # the problem's own elimination order when it has one (GTSAM's default COLAMD costs time quadratic
+    # in the number of poses on a long log); the same for every iteration, so computed once
+    order = problem.ordering(freeze_parameters) if not direct and hasattr(problem, "ordering") else None
+    for _ in range(max_iterations):
+        if direct:
+            neq = problem.normal_equations(st, poses_only=freeze_parameters)
+        else:
+            lin = problem.linearize(st, poses_only=freeze_parameters)
+        while True:
+            if direct:
+                trial = problem.retract(st, problem.solve_damped(neq, lam))
+            else:
+                system = lin.clone()
+                if lam not in damping:
+                    damping[lam] = _damping(keys_dims, lam)
+                system.push_back(damping[lam])
+                try:
+                    trial = problem.retract(st, system.optimize() if order is None else system.optimize(order))
+                except RuntimeError:        # GTSAM: indeterminate at this damping; damp more, as for a failed step
+                    trial = None
+            new_cost = problem.cost(trial) if trial is not None else np.inf
+            if np.isfinite(new_cost) and new_cost <= cost:
+                lam = max(lam / 10.0, 1e-9)
+                break
+            lam *= 10.0
+            if lam > 1e8:
+                hist.converged = True
+                return st, hist
+        improvement = (cost - new_cost) / max(cost, 1e-300)
+        st, cost = trial, new_cost
+        hist.cost.append(cost)
+        hist.iterations += 1
+        if on_iteration is not None:
+            on_iteration(cost)
+        if improvement < rel_tol:
+            hist.converged = True
+            break
+    return st, hist

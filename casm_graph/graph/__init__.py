@@ -1,0 +1,1 @@
+"""The factor graph of a log: variables, factor rows and Jacobians, and the sparse elimination kernel."""

@@ -1,0 +1,1 @@
+"""Reading what users hand over (log bundles, the MRCLAM data set) and writing runs all or nothing."""

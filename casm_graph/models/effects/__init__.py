@@ -1,0 +1,29 @@
+"""The effect catalog (INTERFACE section 6): one module per physical effect, a registry by name.
+
+Write your own by subclassing :class:`Effect` and decorating it with :func:`register`; see the
+README section "Add your own effect".
+"""
+from casm_graph.models.effects import (
+    actuator_lag,  # noqa: F401
+    battery_fade,  # noqa: F401
+    camera_latency,  # noqa: F401
+    false_detections,  # noqa: F401
+    landmark_offset,  # noqa: F401
+    lens_distortion,  # noqa: F401
+    range_dependent_noise,  # noqa: F401
+    regional_motion_noise,  # noqa: F401
+    surface_friction,  # noqa: F401
+)
+from casm_graph.models.effects.base import REGISTRY, Effect, get, register
+
+__all__ = ["REGISTRY", "Effect", "get", "register", "catalog"]
+
+
+def catalog() -> list[dict]:
+    """Name, channel, parameters and physics of every registered effect."""
+    out = []
+    for name in sorted(REGISTRY):
+        e = REGISTRY[name]()
+        out.append({"name": name, "channel": e.channel, "parameters": list(e.params),
+                    "physics": e.physics})
+    return out

@@ -1,0 +1,111 @@
+"""The shape of an effect: a physical process the base model lacks, with its parameters and its change.
+
+An effect is a small class. It names its parameters and their starting values, says in one
+sentence what physics it stands for, which residual covariate it should explain, whether a log
+can support it, and changes one thing: the velocity a step really runs (``velocity``), where
+the sensor and landmark are when an observation is taken (``geometry``), the predicted reading
+(``reading``), or the noise (``reading_scale``, ``outlier_fraction``). Hooks left alone change
+nothing. The simulator applies the same hooks with the true parameters, and the factor graph
+(:mod:`casm_graph.graph.augmented`) with the parameters as variables, differentiating the hooks
+numerically: an effect is written as its forward physics only.
+
+Context arrays (one row per step or observation) handed to the hooks:
+
+* motion ``ctx``: ``t`` (s since the log began), ``pose`` (n, 3) at the step's start, ``since``
+  (s since the current action began), ``dt``, ``v_prev`` (n, 3) velocity of the action before it;
+* sensor ``ctx``: ``t``, ``pose`` (n, 3), ``landmark`` (row index), ``pan`` (n,; NaN when not
+  logged), ``velocity`` (n, 3) body velocity at the observation, ``image_angle`` (n,) predicted.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from casm_graph.io.log import Log, LogError
+
+REGISTRY: dict[str, type["Effect"]] = {}
+
+
+class Effect:
+    """Base class: override the class attributes and the hooks your physics changes."""
+
+    name: str = ""
+    channel: str = "motion"                 # "motion" or "sensor" (INTERFACE section 6)
+    params: tuple[str, ...] = ()
+    start: tuple[float, ...] = ()           # starting values of the parameters in a fit
+    scale: tuple[float, ...] = ()           # typical magnitudes (finite-difference steps, priors)
+    explains: tuple[tuple[str, str], ...] = ()   # (channel, covariate) residual structure it accounts for
+    physics: str = ""                       # one sentence for the catalog and the diagnosis
+    noise_only: bool = False                # parameters set by the noise step, not least squares
+    continuous_only: bool = False           # needs continuous (v, w) commands: the action-table simulator refuses it
+
+    def __init__(self, log: Log | None = None):
+        self.log = log
+
+    # ----------------------------------------------------------------- support
+    def applicable(self, log: Log) -> str | None:
+        """None when ``log`` can support this effect, else the reason it cannot."""
+        return None
+
+    def free_parameters(self) -> int:
+        """Parameters the data must pin down (BIC counts these)."""
+        return len(self.params)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(mean, sigma) of a Gaussian prior on the parameters, or None for none."""
+        return None
+
+    def simulate_params(self, value: float, rng: np.random.Generator) -> np.ndarray:
+        """True parameters for ``simulate --effect NAME=VALUE``."""
+        return np.array([value], float)
+
+    def describe(self, theta: np.ndarray) -> dict:
+        return {p: float(v) for p, v in zip(self.params, theta)}
+
+    # ------------------------------------------------------------------- hooks
+    def velocity(self, theta: np.ndarray, v: np.ndarray, ctx: dict) -> np.ndarray:
+        """(n, 3) body velocity each step really runs, given the table's ``v``."""
+        return v
+
+    def geometry(self, theta, pose, landmark_xy, ctx) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor pose and landmark position an observation really sees."""
+        return pose, landmark_xy
+
+    def reading(self, theta: np.ndarray, predicted: np.ndarray, ctx: dict) -> np.ndarray:
+        """The reading the sensor reports, given the polynomial's prediction."""
+        return predicted
+
+    def reading_scale(self, theta: np.ndarray, distance: np.ndarray, ctx: dict) -> np.ndarray:
+        """Factor on the reading noise sigma of each observation."""
+        return np.ones_like(distance)
+
+    def outlier_fraction(self, theta: np.ndarray) -> float:
+        """Share of observations that belong to no landmark the model knows."""
+        return 0.0
+
+    def estimate_noise(self, theta, reading_z, bearing_z, distance, ctx) -> np.ndarray:
+        """New noise parameters from whitened reading and bearing residuals (noise-only effects)."""
+        return theta
+
+    def corrupt(self, theta, obs: dict, rng: np.random.Generator) -> dict:
+        """Simulator: change the observation arrays after they are drawn (e.g. mislabel some)."""
+        return obs
+
+
+def held(cls: type[Effect]) -> type[Effect]:
+    """``cls`` with its parameters held where they are: least squares and the noise step leave them alone."""
+    return type(cls.__name__, (cls,), {"noise_only": True, "estimate_noise": Effect.estimate_noise,
+                                      "__doc__": f"{cls.__name__} with its parameters held fixed."})
+
+
+def register(cls: type[Effect]) -> type[Effect]:
+    """Class decorator adding an effect to the registry under its ``name``."""
+    if not cls.name:
+        raise ValueError("an effect needs a name")
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+def get(name: str) -> type[Effect]:
+    if name not in REGISTRY:
+        raise LogError(f"unknown effect {name!r} (known: {', '.join(sorted(REGISTRY))})")
+    return REGISTRY[name]

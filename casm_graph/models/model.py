@@ -1,0 +1,346 @@
+"""The calibrated model (INTERFACE section 3): action table, motion noise, sensor polynomial, sigmas."""
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from casm_graph.io.log import Log, LogError
+from casm_graph.io.output import strict
+
+SCHEMA = "casm-graph/model/1"
+
+# The EKFS-EM paper's start: zero velocities, a poor linear sensor model, wide sigmas.
+PAPER_START_READING_SIGMA = 10.0
+PAPER_START_BEARING_SIGMA = 0.2
+PAPER_MOTION_NOISE = (0.010, 0.010, 0.1)
+
+
+@dataclass
+class Model:
+    """Action table + sensor model; arrays indexed like ``action_ids``."""
+
+    action_ids: np.ndarray
+    velocities: np.ndarray                  # (A, 3) vx, vy, w
+    reading_poly: np.ndarray                # c0..cD, reading = sum c_i d**i
+    reading_sigma: float
+    bearing_sigma: float
+    motion_noise: np.ndarray = field(default_factory=lambda: np.array(PAPER_MOTION_NOISE))
+    distance_range: tuple[float, float] = (0.0, 0.0)
+    velocity_std: np.ndarray | None = None  # (A, 3) posterior std
+    reading_poly_std: np.ndarray | None = None
+    reading_poly_cov: np.ndarray | None = None  # (D+1, D+1) posterior covariance of the polynomial
+    effects: dict = field(default_factory=dict)
+    fit: dict = field(default_factory=dict)
+    command: object | None = None           # command_model.CommandModel for continuous commands
+
+    def reading(self, d) -> np.ndarray:
+        return np.polynomial.polynomial.polyval(np.asarray(d, float), self.reading_poly)
+
+    def reading_std(self, d) -> np.ndarray:
+        """Posterior std of the sensor curve at distances ``d`` (from ``reading_poly_cov``; NaN without it)."""
+        d = np.asarray(d, float)
+        if self.reading_poly_cov is None:
+            return np.full(d.shape, np.nan)
+        V = np.vander(d.ravel(), len(self.reading_poly), increasing=True)
+        var = np.einsum("ni,ij,nj->n", V, np.asarray(self.reading_poly_cov, float), V)
+        return np.sqrt(np.clip(var, 0, None)).reshape(d.shape)
+
+    def reading_band(self, points: int = 25) -> dict:
+        """The sensor curve's 90 % credible band over the distances seen (Laplace: mean +- 1.645 std)."""
+        d = np.linspace(*self.distance_range, points)
+        m, s = self.reading(d), self.reading_std(d)
+        return {"distance": d.tolist(), "reading": m.tolist(), "std": s.tolist(),
+                "lo90": (m - 1.645 * s).tolist(), "hi90": (m + 1.645 * s).tolist()}
+
+    def velocity_of(self, action: np.ndarray) -> np.ndarray:
+        """(n, 3) velocity of each action id in ``action``."""
+        return self.velocities[np.searchsorted(self.action_ids, action)]
+
+    def with_(self, **kw) -> "Model":
+        return replace(self, **kw)
+
+    # ------------------------------------------------------------------ JSON
+    def to_json(self) -> dict:
+        """model.json's content, strict: every NaN or infinity is null (JSON has neither)."""
+        ids = [str(int(a)) for a in self.action_ids]
+        std = self.velocity_std if self.velocity_std is not None else np.full_like(self.velocities, np.nan)
+        sensor = {"reading_poly": self.reading_poly.tolist(),
+                  "reading_sigma": float(self.reading_sigma),
+                  "bearing_sigma": float(self.bearing_sigma),
+                  "distance_range": [float(x) for x in self.distance_range]}
+        if self.reading_poly_std is not None:
+            sensor["reading_poly_std"] = self.reading_poly_std.tolist()
+        if self.reading_poly_cov is not None:
+            sensor["reading_poly_cov"] = np.asarray(self.reading_poly_cov).tolist()
+            sensor["reading_band"] = self.reading_band()
+        action_model = ({"kind": "table",
+                         "velocities": {a: v.tolist() for a, v in zip(ids, self.velocities)},
+                         "std": {a: s.tolist() for a, s in zip(ids, std)}}
+                        if self.command is None else self.command.to_json())
+        return strict({
+            "schema": SCHEMA,
+            "action_model": action_model,
+            "motion_noise": [float(x) for x in self.motion_noise],
+            "sensor_model": sensor,
+            "effects": self.effects,
+            "fit": self.fit,
+        })
+
+    def save(self, path: str | Path) -> None:
+        """Write model.json (strict JSON: a NaN or infinity that slipped past ``to_json`` fails here)."""
+        Path(path).write_text(json.dumps(self.to_json(), indent=2, allow_nan=False))
+
+    @classmethod
+    def from_json(cls, data, source: str = "model.json") -> "Model":
+        """The model of a model.json document; anything malformed is one :class:`LogError` line."""
+        try:
+            return _from_json(cls, data, _Where(source))
+        except LogError:
+            raise
+        except RecursionError:
+            raise LogError(f"{source}: nested too deeply to be a casm-graph model") from None
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
+            raise LogError(f"{source}: not a casm-graph model ({type(exc).__name__}: "
+                           f"{_one_line(str(exc))})") from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Model":
+        """Read RUN/model.json: strict UTF-8 JSON (no NaN or Infinity), then :meth:`from_json`."""
+        p = Path(path)
+        if not p.is_file():
+            raise LogError(f"{p}: missing model file")
+        try:
+            text = p.read_bytes().decode("utf-8-sig")
+        except OSError as exc:
+            raise LogError(f"{p.name}: cannot be read ({exc.strerror or exc})") from None
+        except UnicodeDecodeError as exc:
+            raise LogError(f"{p.name}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
+        try:
+            data = json.loads(text, parse_constant=_no_constant)
+        except json.JSONDecodeError as exc:
+            raise LogError(f"{p.name}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+        except RecursionError:
+            raise LogError(f"{p.name}: not valid JSON for a model (nested too deeply)") from None
+        except ValueError as exc:            # NaN/Infinity, or an integer too long to convert
+            raise LogError(f"{p.name}: not valid JSON ({_one_line(str(exc))})") from None
+        return cls.from_json(data, p.name)
+
+
+# --------------------------------------------------------------------------- reading model.json
+
+MAX_NESTING = 20            # effects and fit entries deeper than this are not a model's
+MAX_POLY = 7                # reading_poly: degree 6 at most (calibrate's --sensor-degree)
+_ID = re.compile(r"[+-]?[0-9]+", re.ASCII)
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not valid JSON (write null for an unknown value)")
+
+
+def _one_line(s: str) -> str:
+    s = " ".join(s.split())
+    return s if len(s) <= 120 else s[:120] + "..."
+
+
+def _kind(x) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "true/false",
+            type(None): "null"}.get(type(x), "a number")
+
+
+def _expected(x, what: str) -> str:
+    if x is None:
+        return f"is missing or null (expected {what})"
+    return f"must be {what} (got {_kind(x)})"
+
+
+class _Where:
+    """The file name, for messages."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, where: str, what: str):
+        raise LogError(f"{self.source}: {where} {what}")
+
+    def obj(self, x, where: str) -> dict:
+        if not isinstance(x, dict):
+            self.fail(where, _expected(x, "a JSON object"))
+        return x
+
+    def num(self, x, where: str, positive: bool = False, nonneg: bool = False) -> float:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            self.fail(where, _expected(x, "a number"))
+        try:
+            v = float(x)
+        except OverflowError:
+            v = math.inf
+        if not math.isfinite(v):
+            self.fail(where, "must be a finite number")
+        if positive and not v > 0:
+            self.fail(where, f"must be positive (got {v:g})")
+        if nonneg and v < 0:
+            self.fail(where, f"must not be negative (got {v:g})")
+        return v
+
+    def vec(self, x, where: str, n: int | None = None, nullable: bool = False, nonneg: bool = False,
+            positive: bool = False, max_len: int | None = None) -> np.ndarray:
+        """A list of finite numbers (null read as NaN where ``nullable``) of length ``n`` when given."""
+        if not isinstance(x, list):
+            self.fail(where, _expected(x, "a list of numbers"))
+        if n is not None and len(x) != n:
+            self.fail(where, f"must hold {n} numbers (got {len(x)})")
+        if not x or (max_len is not None and len(x) > max_len):
+            self.fail(where, f"must hold 1 to {max_len or 'any'} numbers (got {len(x)})")
+        return np.array([np.nan if (v is None and nullable) else
+                         self.num(v, f"{where}[{i}]", positive=positive, nonneg=nonneg)
+                         for i, v in enumerate(x)], float)
+
+    def plain(self, x, where: str, depth: int = 0) -> None:
+        """Free-form content (effects, fit): finite numbers, strings, true/false, null, lists, objects."""
+        if depth > MAX_NESTING:
+            self.fail(where, f"is nested more than {MAX_NESTING} levels deep")
+        if isinstance(x, dict):
+            for k, v in x.items():
+                self.plain(v, f"{where}.{k}", depth + 1)
+        elif isinstance(x, list):
+            for i, v in enumerate(x):
+                self.plain(v, f"{where}[{i}]", depth + 1)
+        elif isinstance(x, (int, float)) and not isinstance(x, bool):
+            self.num(x, where)
+
+
+def _action_ids(w: _Where, keys, where: str) -> list[tuple[int, str]]:
+    out, seen = [], set()
+    for k in keys:
+        if not _ID.fullmatch(k) or abs(int(k)) > 2 ** 63 - 1:
+            w.fail(where, f"has key {k[:40]!r}, which is not an integer action id")
+        a = int(k)
+        if a in seen:
+            w.fail(where, f"names action {a} twice")
+        seen.add(a)
+        out.append((a, k))
+    return sorted(out)
+
+
+def _command_model(w: _Where, am: dict):
+    from casm_graph.models.command_model import CommandModel
+    scale = w.obj(am.get("scale"), "action_model.scale")
+    coef = w.obj(am.get("coefficients"), "action_model.coefficients")
+    std = w.obj(am.get("std") or {}, "action_model.std")
+    rng = w.obj(am.get("command_range") or {}, "action_model.command_range")
+    for c in ("v", "w"):
+        w.num(scale.get(c), f"action_model.scale.{c}", positive=True)
+        n = len(w.vec(coef.get(c), f"action_model.coefficients.{c}", max_len=MAX_POLY))
+        if std.get(c) is not None:
+            w.vec(std[c], f"action_model.std.{c}", n=n, nullable=True, nonneg=True)
+        if c in rng:
+            w.vec(rng[c], f"action_model.command_range.{c}", n=2)
+    if "lag" in am:
+        w.num(am["lag"], "action_model.lag", nonneg=True)
+    return CommandModel.from_json(am)
+
+
+def _effects(w: _Where, effects) -> dict:
+    from casm_graph.models.effects import REGISTRY
+    w.obj(effects, "effects")
+    for name, entry in effects.items():
+        w.obj(entry, f"effects.{name}")
+        w.plain(entry, f"effects.{name}")
+        cls = REGISTRY.get(name)
+        if cls is None:
+            continue
+        if name == "regional_motion_noise":
+            if not entry:
+                continue
+            grid = w.vec(entry.get("grid"), f"effects.{name}.grid", n=2, positive=True)
+            if np.any(grid != np.round(grid)):
+                w.fail(f"effects.{name}.grid", "must hold two whole counts")
+            ext = w.vec(entry.get("extent"), f"effects.{name}.extent", n=4)
+            if not (ext[2] > ext[0] and ext[3] > ext[1]):
+                w.fail(f"effects.{name}.extent", "must be [x0, y0, x1, y1] with x1 > x0 and y1 > y0")
+            for p in cls.params:
+                w.vec(entry.get(p), f"effects.{name}.{p}", n=int(grid.prod()), nonneg=True)
+            continue
+        for p, v in entry.items():          # scalar parameters (landmark_offset's shape_k included)
+            if p in cls.params or p.startswith("shape_"):
+                w.num(v, f"effects.{name}.{p}")
+    return effects
+
+
+def _from_json(cls, data, w: _Where) -> Model:
+    w.obj(data, "the top level")
+    if data.get("schema") != SCHEMA:
+        got = "missing" if data.get("schema") is None else _one_line(repr(data["schema"]))[:60]
+        w.fail("schema", f"is {got}, expected {SCHEMA!r}")
+    am = w.obj(data.get("action_model"), "action_model")
+    sm = w.obj(data.get("sensor_model"), "sensor_model")
+    command = None
+    kind = am.get("kind")
+    if kind == "command_poly":
+        command = _command_model(w, am)
+        ids, vel, vstd = np.array([], int), np.zeros((0, 3)), None
+    elif kind == "table":
+        velocities = w.obj(am.get("velocities"), "action_model.velocities")
+        pairs = _action_ids(w, velocities.keys(), "action_model.velocities")
+        ids = np.array([a for a, _ in pairs], np.int64)
+        vel = np.array([w.vec(velocities[k], f"action_model.velocities.{k}", n=3) for _, k in pairs],
+                       float).reshape(len(ids), 3)
+        std = am.get("std")
+        vstd = None
+        if std:
+            std = w.obj(std, "action_model.std")
+            vstd = np.array([w.vec(std[k], f"action_model.std.{k}", n=3, nullable=True, nonneg=True)
+                             if std.get(k) is not None else np.full(3, np.nan) for _, k in pairs],
+                            float).reshape(len(ids), 3)
+    else:
+        w.fail("action_model.kind", f"{_one_line(repr(kind))[:60]} is not supported here (known: 'table', "
+                                    f"'command_poly')")
+    poly = w.vec(sm.get("reading_poly"), "sensor_model.reading_poly", max_len=MAX_POLY)
+    D = len(poly)
+    dr = w.vec(sm["distance_range"], "sensor_model.distance_range", n=2, nonneg=True) \
+        if sm.get("distance_range") is not None else np.zeros(2)
+    if dr[1] < dr[0]:
+        w.fail("sensor_model.distance_range", f"must be [dmin, dmax] with dmin <= dmax (got {dr.tolist()})")
+    poly_std = poly_cov = None
+    if sm.get("reading_poly_std") is not None:
+        poly_std = w.vec(sm["reading_poly_std"], "sensor_model.reading_poly_std", n=D, nullable=True, nonneg=True)
+    if sm.get("reading_poly_cov") is not None:
+        rows = sm["reading_poly_cov"]
+        if not isinstance(rows, list) or len(rows) != D:
+            w.fail("sensor_model.reading_poly_cov", f"must be a {D} x {D} matrix (one row per coefficient)")
+        poly_cov = np.array([w.vec(r, f"sensor_model.reading_poly_cov[{i}]", n=D, nullable=True)
+                             for i, r in enumerate(rows)], float)
+        if np.isnan(poly_cov).any():
+            poly_cov = None                 # written when the fit could not compute it: unknown
+        elif not np.allclose(poly_cov, poly_cov.T, rtol=1e-6, atol=0) or np.any(np.diag(poly_cov) < 0):
+            w.fail("sensor_model.reading_poly_cov", "must be a symmetric covariance (non-negative diagonal)")
+    motion = (w.vec(data["motion_noise"], "motion_noise", n=3, positive=True)
+              if "motion_noise" in data else np.array(PAPER_MOTION_NOISE, float))
+    effects = _effects(w, data.get("effects", {}))
+    fit = w.obj(data.get("fit", {}), "fit")
+    w.plain(fit, "fit")
+    return cls(action_ids=ids, velocities=vel, reading_poly=poly,
+               reading_sigma=w.num(sm.get("reading_sigma"), "sensor_model.reading_sigma", positive=True),
+               bearing_sigma=w.num(sm.get("bearing_sigma"), "sensor_model.bearing_sigma", positive=True),
+               motion_noise=motion, distance_range=(float(dr[0]), float(dr[1])), velocity_std=vstd,
+               reading_poly_std=poly_std, reading_poly_cov=poly_cov, effects=effects, fit=fit, command=command)
+
+
+def paper_start(log: Log, degree: int = 3) -> Model:
+    """The EKFS-EM paper's starting point: zero velocities and a very poor linear sensor model.
+
+    The line is flat at the median reading (it knows the readings' scale, nothing of their
+    dependence on distance); higher coefficients start at zero.
+    """
+    if log.action is None:
+        raise LogError("commands.csv: the table action model needs an 'action' column")
+    ids = log.action_ids
+    poly = np.zeros(degree + 1)
+    poly[0] = float(np.nanmedian(log.obs_reading))
+    return Model(action_ids=ids, velocities=np.zeros((len(ids), 3)), reading_poly=poly,
+                 reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA)

@@ -1,0 +1,100 @@
+"""Diagnosis of a calibrated log: ``diagnose`` in memory (a Calibration or a model), ``run`` as the command does it."""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continuous
+from casm_graph.analysis.diagnosis import Diagnosis
+from casm_graph.analysis.diagnosis import diagnose as diagnose_table
+from casm_graph.fit import continuous
+from casm_graph.fit.calibration import Calibration
+from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
+from casm_graph.io.identifiability import check_identifiable
+from casm_graph.io.log import Log, LogError, load
+from casm_graph.io.output import checked_out
+from casm_graph.models.effects import REGISTRY
+from casm_graph.models.model import Model
+from casm_graph.report import pages as report
+
+
+def _trajectory_csv(log: Log, model_path: Path) -> np.ndarray | None:
+    """(T+1, 3) poses from RUN/trajectory.csv beside the model, when it is there and fits the log."""
+    tr = model_path.parent / "trajectory.csv"
+    if tr.is_file():
+        with open(tr) as f:
+            rows = list(csv.DictReader(f))
+        if len(rows) == log.steps + 1:
+            try:
+                return np.array([[float(r["x"]), float(r["y"]), float(r["theta"])] for r in rows])
+            except (KeyError, ValueError):
+                pass
+    return None
+
+
+def check_compatible(log: Log, model: Model, source: str) -> None:
+    missing = sorted(set(log.action_ids.tolist()) - set(model.action_ids.tolist()))
+    if missing:
+        raise LogError(f"{source}: the model has no velocity for action(s) {missing[:10]} that the log runs")
+
+
+def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
+             progress=None, poses: np.ndarray | None = None, client=None) -> Diagnosis:
+    """Where ``calibration`` fails on ``log`` and which effect is missing; in memory (``save`` writes DIAG).
+
+    ``calibration`` is a :class:`Calibration` (its trajectory is the start) or a :class:`Model` (then
+    ``poses`` if given, else a fresh smoother's). ``extra_effects``: user effect classes to consider;
+    ``client``: a Dask ``distributed.Client`` to fit the candidates and folds on (default: a local process pool).
+    """
+    if isinstance(calibration, Calibration):
+        if isinstance(calibration.model, dict):
+            raise LogError(f"diagnose: the {calibration.options.method} models of a 1-D log have no diagnosis")
+        model = calibration.model
+        poses = np.column_stack([calibration.trajectory[k] for k in ("x", "y", "theta")]) if poses is None else poses
+    else:
+        model = calibration
+    check_identifiable(log)
+    source = log.source or "the log"
+    if log.controls is not None:
+        if model.command is None:
+            raise LogError(f"the model has no command map (action_model.kind 'command_poly') for {source}'s "
+                           f"continuous commands; calibrate this log first")
+        if poses is None:
+            if progress is not None:
+                progress.stage("start trajectory", None)
+            poses = continuous.fit(log, model, marginals=False).poses
+        diag = diagnose_continuous(log, model, poses, progress=progress)
+    else:
+        check_compatible(log, model, "the model")
+        model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
+                            action_ids=log.action_ids, velocity_std=None)
+        unknown = [n for n in model.effects if n not in REGISTRY and n not in {c.name for c in extra_effects}]
+        if unknown:
+            raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
+        if poses is None:
+            if progress is not None:
+                progress.stage("start trajectory", None)
+            poses = ekfs_fit(log, model, max_iterations=1).poses
+        diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
+                              candidates=candidates, client=client)
+    diag.log, diag.write_report = log, report.diagnosis
+    return diag
+
+
+def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects=(), candidates=None,
+        force: bool = False, client=None) -> Diagnosis:
+    """Diagnose the model at ``model_path`` on the bundle at ``log_dir``; write DIAG to ``out`` (all or nothing)."""
+    checked_out(out, force, inputs=[log_dir, model_path])
+    model_path = Path(model_path)
+    model = Model.load(model_path)
+    log = load(log_dir)
+    if log.controls is None:
+        check_compatible(log, model, model_path.name)
+    diag = diagnose(log, model, extra_effects=extra_effects, candidates=candidates, workers=workers,
+                    progress=progress, poses=_trajectory_csv(log, model_path), client=client)
+    if progress is not None:
+        progress.stage("report", None)
+    diag.save(out, force=force)
+    return diag

@@ -1,0 +1,197 @@
+"""``casm-graph uncertainty``: sample the noise levels, take the Laplace marginals of the rest, write UNC.
+
+UNC gets posterior.json (INTERFACE section 5, plus the priors, the likelihood's cost and the
+Laplace results), model.json (the input model at the posterior median noise levels, with the
+table and polynomial at their posterior mean and std, the Laplace marginals averaged over the
+noise posterior, the polynomial's covariance and the sensor curve's 90 % band), corner.png,
+trace.png and report.html.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from casm_graph.analysis import posterior as P
+from casm_graph.analysis.marginal_likelihood import MarginalLikelihood, likelihood
+from casm_graph.fit.calibration import Calibration, read_truth_model
+from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
+from casm_graph.io.identifiability import check_identifiable
+from casm_graph.io.log import Log, LogError, load
+from casm_graph.io.output import atomic_dir, checked_out, json_text
+from casm_graph.models.model import Model
+from casm_graph.pipeline.diagnose import _trajectory_csv, check_compatible
+from casm_graph.report import uncertainty as uncertainty_report
+
+SCHEMA = "casm-graph/posterior/1"
+DRAWS = 64                 # posterior noise draws the table's and polynomial's Laplace marginals are averaged over
+
+
+@dataclass
+class Uncertainty:
+    """Everything the report and the tests read."""
+
+    log: Log
+    model: Model                # at the posterior median noise, with Laplace std
+    ml: MarginalLikelihood
+    chain: P.Chain
+    intervals: dict              # each sampled quantity: median and ci90
+    priors: dict
+    cov_theta: np.ndarray
+    truth: dict | None
+    seconds: float
+    draws: int = DRAWS
+
+    def summary(self) -> str:
+        """Each sampled noise level's median and 90 % interval, and the sampler's figures."""
+        ch = self.chain
+        lines = [f"posterior of {len(ch.names)} noise levels: {ch.walkers} walkers x {ch.steps} steps "
+                 f"(burn-in {ch.burn_in}), acceptance {ch.acceptance:.2f}"]
+        lines += [f"  {n:<24} {s['median']:.4g}  90% [{s['ci90'][0]:.4g}, {s['ci90'][1]:.4g}]"
+                  for n, s in self.intervals.items()]
+        return "\n".join(lines + [f"  note: {n}" for n in ch.notes])
+
+    def save(self, out, force: bool = False) -> Path:
+        """Write UNC (posterior.json, model.json, corner.png, trace.png, report.html) all or nothing."""
+        with atomic_dir(out, force=force, inputs=[self.log.source] if self.log.source else []) as tmp:
+            (tmp / "posterior.json").write_text(json_text(self.to_json()))
+            (tmp / "model.json").write_text(json_text(self.model.to_json()))
+            uncertainty_report.write(tmp, self)
+        return Path(out)
+
+    def to_json(self) -> dict:
+        ch = self.chain
+        return {
+            "schema": SCHEMA,
+            "parameters": {n: {**s, "prior": self.priors[n].describe()} for n, s in self.intervals.items()},
+            "sampler": {"walkers": ch.walkers, "steps": ch.steps, "burn_in": ch.burn_in,
+                        "acceptance_fraction": ch.acceptance,
+                        "autocorr_time": {n: float(t) for n, t in zip(ch.names, ch.tau)},
+                        "thin": ch.thin, "samples": int(len(ch.samples)), "too_short": ch.too_short,
+                        "notes": ch.notes},
+            "likelihood": {"method": "laplace",
+                           "integrated_out": ["poses", "velocity table", "sensor polynomial",
+                                              "effect parameters (least squares)"],
+                           "linearisation": "MAP at the model's noise levels",
+                           "evaluations": ch.evaluations,
+                           "seconds_per_evaluation": ch.seconds_per_evaluation,
+                           "cpu_seconds_per_evaluation": ch.cpu_seconds_per_evaluation,
+                           "steps": int(self.log.steps)},
+            "laplace": {"noise_draws": self.draws,
+                        "velocity_std": {str(int(a)): s.tolist() for a, s in
+                                         zip(self.model.action_ids, self.model.velocity_std)},
+                        "reading_poly_std": self.model.reading_poly_std.tolist(),
+                        "reading_band": self.model.reading_band()},
+            "seconds": round(self.seconds, 2),
+        }
+
+
+def prepare(log: Log, model: Model, poses: np.ndarray | None = None, source: str = "the model") -> tuple[Model, np.ndarray]:
+    """The model indexed like the log's actions, and a start trajectory (``poses``, else the EKF smoother's)."""
+    if model.command is not None or log.action is None:
+        raise LogError(f"{source}: uncertainty needs a table action model and a log with an 'action' column "
+                       f"(continuous-command logs are not supported yet)")
+    check_compatible(log, model, source)
+    model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
+                        action_ids=log.action_ids, velocity_std=None)
+    if poses is None:
+        poses = ekfs_fit(log, model, max_iterations=1).poses
+    return model, poses
+
+
+def mixed_marginals(ml: MarginalLikelihood, samples: np.ndarray, draws: int = DRAWS, seed: int = 0):
+    """Mean shift from the MAP and covariance of table, polynomial and effect parameters, noise integrated out.
+
+    The Laplace posterior of the parameters given the noise, N(MAP + shift(lambda), S(lambda)^-1),
+    is averaged over ``draws`` posterior samples of the noise (law of total variance), so a noise
+    level the log cannot pin down widens the table's intervals as much as its posterior says.
+    """
+    rng = np.random.default_rng(seed)
+    pick = samples[rng.choice(len(samples), size=min(draws, len(samples)), replace=False)]
+    shifts, covs = [], []
+    for x in pick:
+        _, _, _, S, gt = ml.reduce(x)
+        C = np.linalg.inv(S)
+        covs.append(C)
+        shifts.append(-C @ gt)
+    shifts = np.array(shifts)
+    cov = np.mean(covs, axis=0) + (np.cov(shifts.T) if len(shifts) > 1 else 0.0)
+    return shifts.mean(axis=0), cov
+
+
+def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (), walkers: int | None = None,
+            max_steps: int = 5000, seed: int = 0, truth: dict | None = None, progress=None,
+            draws: int = DRAWS, pool=None) -> Uncertainty:
+    """Sample the noise levels of ``model`` on ``log`` and the Laplace marginals at their posterior median
+    (``pool``: anything with ``map``, e.g. a Dask cluster's, to evaluate emcee's walkers on)."""
+    t0 = time.perf_counter()
+    overrides = dict(P.parse_prior(s) for s in priors)
+    if progress is not None:
+        progress.stage("MAP", None)
+    # small dense blocks only: BLAS threads would spin and triple the cost of every evaluation
+    with threadpool_limits(1):
+        ml = likelihood(log, model, poses)
+        pri = P.priors_for(ml, overrides)
+        ch = P.run(ml, pri, walkers=walkers, max_steps=max_steps, seed=seed, progress=progress, pool=pool)
+        summ = P.summary(ch)
+        if progress is not None:
+            progress.stage("marginals", None)
+        x_med = np.array([summ[n]["median"] for n in ml.names])
+        shift, cov = mixed_marginals(ml, ch.samples, draws=draws, seed=seed)
+    pb, st = ml.problem, ml.state
+    A, D = pb.A, pb.D
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sr, sb, mot, th = ml._split(x_med)
+    effects = dict(model.effects)
+    th = th.copy()
+    th[pb.ls_index] += shift[3 * A + D:]
+    for e, s in zip(pb.effects, pb.slices):
+        effects[e.name] = e.describe(th[s])
+    d = pb.predictions(st)["distance"][np.isfinite(log.obs_reading)]
+    new = model.with_(velocities=st.velocities + shift[:3 * A].reshape(-1, 3), velocity_std=sd[:3 * A].reshape(-1, 3),
+                      reading_poly=st.poly + shift[3 * A:3 * A + D], reading_poly_std=sd[3 * A:3 * A + D],
+                      reading_poly_cov=cov[3 * A:3 * A + D, 3 * A:3 * A + D], reading_sigma=sr, bearing_sigma=sb,
+                      motion_noise=mot, effects=effects,
+                      distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range,
+                      fit={**model.fit, "uncertainty": "noise levels: posterior median; table and polynomial: "
+                                                       "Laplace marginals averaged over the noise posterior"})
+    return Uncertainty(log, new, ml, ch, summ, pri, cov, truth, time.perf_counter() - t0, draws)
+
+
+def uncertainty(log: Log, calibration: Calibration | Model, priors: tuple[str, ...] = (), walkers: int | None = None,
+                max_steps: int = 5000, seed: int = 0, progress=None, pool=None) -> Uncertainty:
+    """The posterior of the noise levels (emcee) and the Laplace marginals of the rest; in memory (``save`` writes UNC)."""
+    check_identifiable(log)
+    for s in priors:
+        P.parse_prior(s)
+    if isinstance(calibration, Calibration):
+        if isinstance(calibration.model, dict):
+            raise LogError(f"uncertainty: the {calibration.options.method} models of a 1-D log have no posterior here")
+        model = calibration.model
+        poses = np.column_stack([calibration.trajectory[k] for k in ("x", "y", "theta")])
+    else:
+        model, poses = calibration, None
+    model, poses = prepare(log, model, poses)
+    return compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(log.source), progress,
+                   pool=pool)
+
+
+def run(log_dir, model_path, out, priors: tuple[str, ...] = (), walkers: int | None = None, max_steps: int = 5000,
+        seed: int = 0, progress=None, force: bool = False, pool=None) -> Uncertainty:
+    """The command: check everything first (bad input writes nothing), compute, write UNC all or nothing."""
+    checked_out(out, force, inputs=[log_dir, model_path])
+    model_path = Path(model_path)
+    for s in priors:
+        P.parse_prior(s)
+    model = Model.load(model_path)
+    log = load(log_dir)
+    model, poses = prepare(log, model, _trajectory_csv(log, model_path), model_path.name)
+    unc = compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(log.source), progress,
+                  pool=pool)
+    if progress is not None:
+        progress.stage("report", None)
+    unc.save(out, force=force)
+    return unc

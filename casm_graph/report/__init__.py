@@ -1,0 +1,1 @@
+"""The HTML pages of calibrations, diagnoses and posteriors, figures embedded."""

@@ -1,0 +1,347 @@
+"""Self-contained HTML reports: figures as embedded PNGs next to the numbers they show."""
+from __future__ import annotations
+
+import base64
+import html
+import io
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Ellipse
+
+from casm_graph.fit import residuals
+from casm_graph.fit.methods.base import Fit
+from casm_graph.graph import table as G
+from casm_graph.io.log import Log
+from casm_graph.sim.aibo import true_reading
+
+STYLE = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
+table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
+th{background:#f0f0f0}img{max-width:100%}.bad{color:#b00}"""
+
+
+def subplots(nrows: int = 1, ncols: int = 1, figsize=None, **kw):
+    """A figure and its axes, made without pyplot so that reports never touch the caller's backend."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(nrows, ncols, **kw)
+
+
+def png(fig) -> str:
+    """An <img> tag holding ``fig`` as an embedded PNG."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    return f'<img src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
+
+
+def sensor_figure(log: Log, fit: Fit, truth: dict | None):
+    m = fit.model
+    d_obs = residuals.distances(fit.poses[log.obs_step], log)
+    fig, ax = subplots(figsize=(7, 4))
+    ok = ~np.isnan(log.obs_reading)
+    ax.plot(d_obs[ok], log.obs_reading[ok], ".", ms=1, alpha=0.3, color="0.5", label="readings at fitted poses")
+    lo, hi = m.distance_range
+    d = np.linspace(lo, hi, 200)
+    ax.plot(d, m.reading(d), "C0", lw=2, label="learned")
+    if truth is not None and "camera" in truth.get("sensor_model", {}):
+        ax.plot(d, true_reading(truth, d), "C3--", lw=2, label="true")
+    ax.set(xlabel="distance (m)", ylabel="reading", title="Sensor model")
+    ax.legend()
+    return fig
+
+
+def trajectory_figure(log: Log, poses: np.ndarray, std: np.ndarray, others: dict | None = None, ellipses: int = 60):
+    """The estimated path with 2-sigma ellipses of its marginal x, y std, the truth when the log has it, the map."""
+    fig, ax = subplots(figsize=(7, 6))
+    if log.truth is not None:
+        ax.plot(log.truth[:, 1], log.truth[:, 2], color="0.55", lw=1.2, label="truth")
+    for i, (name, p) in enumerate((others or {}).items()):
+        ax.plot(p[:, 0], p[:, 1], lw=0.6, color=f"C{i + 1}", label=name)
+    ax.plot(poses[:, 0], poses[:, 1], "C0", lw=0.6, label="estimated")
+    if np.isfinite(std[:, :2]).any():
+        for k in np.linspace(0, len(poses) - 1, ellipses).astype(int):
+            if np.isfinite(std[k, :2]).all():
+                ax.add_patch(Ellipse((poses[k, 0], poses[k, 1]), 4 * std[k, 0], 4 * std[k, 1], fill=False,
+                                     color="C0", lw=0.7, alpha=0.8))
+        ax.plot([], [], "o", mfc="none", color="C0", label="2-sigma ellipses (x, y std)")
+    ax.plot(log.landmark_xy[:, 0], log.landmark_xy[:, 1], "k^", ms=10, label="landmarks")
+    for i, (x, y) in zip(log.landmark_ids, log.landmark_xy):
+        ax.annotate(str(i), (x, y), textcoords="offset points", xytext=(6, 6))
+    ax.set(xlabel="x (m)", ylabel="y (m)", title="Trajectory on the map")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8)
+    return fig
+
+
+def fit_quality(cal) -> str:
+    """The page's opening: how good the fit is, in units; the effects and their values; the run's record."""
+    m, log, tr = cal.model, cal.log, cal.trajectory
+    poses = np.column_stack([tr["x"], tr["y"], tr["theta"]])
+    r, b = residuals.observation(poses[log.obs_step], log, m)
+    rows = []
+    if m.command is None and m.velocity_std is not None and np.isfinite(m.velocity_std).any():
+        med = np.nanmedian(m.velocity_std, axis=0)
+        rows.append(("action table std (median over actions)",
+                     f"vx {1000 * med[0]:.1f} mm/s, vy {1000 * med[1]:.1f} mm/s, w {med[2]:.4f} rad/s"))
+    if m.command is not None and m.command.v_std is not None:
+        rows.append(("command map coefficient std", "v " + ", ".join(f"{x:.2g}" for x in m.command.v_std)
+                     + "; w " + ", ".join(f"{x:.2g}" for x in m.command.w_std)))
+    if m.reading_poly_cov is not None:
+        d = np.linspace(*m.distance_range, 50)
+        rows.append(("sensor curve std (median over distances seen)", f"{np.median(m.reading_std(d)):.3g} reading units"))
+    for name, res, unit, sigma in (("reading", r, "reading units", m.reading_sigma), ("bearing", b, "rad", m.bearing_sigma)):
+        ok = np.isfinite(res)
+        if ok.sum() > 2:
+            x = res[ok] - res[ok].mean()
+            r1 = float(np.sum(x[1:] * x[:-1]) / max(np.sum(x * x), 1e-300))
+            rows.append((f"{name} residuals", f"RMS {np.sqrt(np.mean(res[ok] ** 2)):.4g} {unit} (model sigma {sigma:.4g}); "
+                                              f"lag-1 autocorrelation {r1:+.2f}, whiteness p {residuals.ljung_box(res[ok]):.2g}"))
+    pos = np.sqrt(np.nanmean(tr["sx"] ** 2 + tr["sy"] ** 2)) if np.isfinite(tr["sx"]).any() else float("nan")
+    rows.append(("trajectory position std (RMS)", f"{pos:.3f} m"))
+    if log.truth is not None and len(log.truth) == len(poses):
+        err = np.hypot(*(poses[:, :2] - log.truth[:, 1:3]).T)
+        rows.append(("position RMS against truth.csv", f"{np.sqrt(np.mean(err ** 2)):.3f} m"))
+    effects_std = m.fit.get("effects_std", {})
+    for name, params in m.effects.items():
+        vals = ", ".join(f"{k} {v:.4g}" + (f" &plusmn; {effects_std[name][k]:.2g}" if k in effects_std.get(name, {}) else "")
+                         for k, v in params.items() if isinstance(v, (int, float)))
+        rows.append((f"effect {html.escape(name)}", vals or "see model.json"))
+    record = cal.model_json["fit"]
+    rows += [("command", html.escape(str(record.get("command") or "(Python API)"))),
+             ("casm-graph version", html.escape(str(record.get("version")))), ("log", html.escape(str(record.get("log"))))]
+    body = "".join(f"<tr><th style='text-align:left'>{k}</th><td style='text-align:left'>{v}</td></tr>" for k, v in rows)
+    return f"<h2>How good is the fit</h2><table>{body}</table>"
+
+
+def residual_figure(log: Log, fit: Fit):
+    m = fit.model
+    lay = G.layout(log, m, 1)
+    mot = residuals.motion(fit.poses, lay, m)
+    r, b = residuals.observation(fit.poses[log.obs_step], log, m)
+    d = residuals.distances(fit.poses[log.obs_step], log)
+    fig, axs = subplots(2, 2, figsize=(10, 6))
+    t = log.t
+    for i, (name, s) in enumerate([("forward (m)", 0), ("turn (rad)", 2)]):
+        ax = axs[0, i]
+        ax.plot(t, mot[:, s], ",", alpha=0.4)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set(xlabel="time (s)", ylabel=name, title=f"motion residual: {name.split()[0]}")
+    ax = axs[1, 0]
+    ax.plot(d, r, ".", ms=1, alpha=0.3)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.reading_sigma:.3g})")
+    ax = axs[1, 1]
+    bb = b[~np.isnan(b)]
+    ax.hist(bb, bins=60, density=True, alpha=0.6)
+    x = np.linspace(-np.pi, np.pi, 200)
+    s = m.bearing_sigma
+    ax.plot(x, np.exp(-0.5 * (x / s) ** 2) / (s * np.sqrt(2 * np.pi)), "C3")
+    ax.set(xlabel="bearing residual (rad)", title=f"bearing residual (sigma {s:.3g})")
+    fig.tight_layout()
+    return fig
+
+
+def cost_figure(fit: Fit):
+    fig, ax = subplots(figsize=(7, 3.5))
+    cost = np.asarray(fit.cost)
+    stages = np.asarray(fit.stages)
+    for j, st in enumerate(dict.fromkeys(stages)):
+        idx = np.flatnonzero(stages == st)
+        ax.semilogy(idx + 1, cost[idx], "o-", ms=3, color=f"C{j}", label=f"{st} graph")
+    ax.set(xlabel="iteration", ylabel="cost (half chi-square)", title="Cost per iteration")
+    ax.legend()
+    return fig
+
+
+def velocity_table(fit: Fit, truth: dict | None) -> str:
+    m = fit.model
+    tv = None
+    if truth is not None:
+        tab = truth.get("action_model", {}).get("velocities", {})
+        if all(str(int(a)) in tab for a in m.action_ids):
+            tv = np.array([tab[str(int(a))] for a in m.action_ids])
+    head = "<tr><th>action</th><th>vx (m/s)</th><th>vy (m/s)</th><th>w (rad/s)</th>"
+    head += "<th>true vx</th><th>true vy</th><th>true w</th></tr>" if tv is not None else "</tr>"
+    rows = []
+    std = m.velocity_std if m.velocity_std is not None else np.full_like(m.velocities, np.nan)
+    for i, a in enumerate(m.action_ids):
+        cells = [f"{v:+.3f} &plusmn; {s:.3f}" for v, s in zip(m.velocities[i], std[i])]
+        if tv is not None:
+            cells += [f"{v:+.3f}" for v in tv[i]]
+        rows.append(f"<tr><td>{int(a)}</td>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    summary = ""
+    if tv is not None:
+        rms = np.sqrt(np.mean((m.velocities - tv) ** 2, axis=0))
+        summary = (f"<p>RMS error against the simulator's table: vx {1000 * rms[0]:.1f} mm/s, "
+                   f"vy {1000 * rms[1]:.1f} mm/s, w {rms[2]:.4f} rad/s.</p>")
+    return summary + f"<table>{head}{''.join(rows)}</table>"
+
+
+def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | None, cal=None) -> None:
+    """report.html of a calibration run (``cal``, the Calibration, adds the opening table of fit quality)."""
+    m = fit.model
+    f = m.fit
+    facts = [("method", f.get("method")), ("iterations", f.get("iterations")),
+             ("seconds", f.get("seconds")), ("converged", f.get("converged")),
+             ("log-likelihood", f"{f.get('log_likelihood', float('nan')):.1f}"),
+             ("steps", log.steps), ("observations", len(log.obs_t)),
+             ("reading sigma", f"{m.reading_sigma:.4g}"), ("bearing sigma (rad)", f"{m.bearing_sigma:.4g}"),
+             ("motion noise per step", ", ".join(f"{x:.4g}" for x in m.motion_noise)),
+             ("sensor polynomial", ", ".join(f"{c:.5g}" for c in m.reading_poly)),
+             ("distance range (m)", f"{m.distance_range[0]:.2f} to {m.distance_range[1]:.2f}")]
+    if truth is not None:
+        sm = truth.get("sensor_model", {})
+        facts += [("true reading sigma", sm.get("reading_sigma")), ("true bearing sigma", sm.get("bearing_sigma"))]
+        if "camera" in sm:
+            d = np.linspace(*m.distance_range, 200)
+            facts.append(("sensor curve RMS vs truth", f"{np.sqrt(np.mean((m.reading(d) - true_reading(truth, d)) ** 2)):.3f}"))
+    info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
+    warn = ""
+    if fit.notes.get("marginals_ridge"):
+        warn = ("<p><b>Warning:</b> the fitted graph is nearly singular (a poor fit, or a log that cannot pin "
+                f"the model down); the standard deviations were computed with a ridge of "
+                f"{fit.notes['marginals_ridge']:g} x the largest information and are lower bounds.</p>")
+    if not f.get("converged", True):
+        warn += "<p><b>Warning:</b> the optimiser stopped before converging; check the cost per iteration.</p>"
+    body = [f"<h1>casm-graph calibration</h1>{warn}", fit_quality(cal) if cal is not None else "",
+            f"<h2>The fit</h2><table>{info}</table>",
+            "<h2>Sensor model</h2>", png(sensor_figure(log, fit, truth)),
+            "<h2>Cost per iteration</h2>", png(cost_figure(fit)),
+            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, std)),
+            "<h2>Residuals</h2>", png(residual_figure(log, fit)),
+            "<h2>Action table</h2>", velocity_table(fit, truth)]
+    path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph calibration</title>"
+                    f"<style>{STYLE}</style></head><body>{''.join(body)}</body></html>")
+
+
+# ----------------------------------------------------------------------------- diagnosis
+def _binned(x, y, bins=12):
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
+    g = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, len(edges) - 2)
+    n = np.bincount(g, minlength=len(edges) - 1)
+    ok = n > 1
+    m = np.bincount(g, weights=y, minlength=len(n))[ok] / n[ok]
+    v = np.bincount(g, weights=y * y, minlength=len(n))[ok] / n[ok] - m ** 2
+    c = 0.5 * (edges[:-1] + edges[1:])[ok]
+    return c, m, 2 * np.sqrt(np.maximum(v, 0) / n[ok])
+
+
+def covariate_panels(diag, top: int = 6):
+    """The strongest residual-covariate dependences: residuals, binned means and their 2-SE bars."""
+    pairs = [(ch, c) for ch, r in diag.channels.items() for c in r["covariates"]]
+    pairs.sort(key=lambda p: -p[1]["strength"])
+    pairs = pairs[:top]
+    fig, axes = subplots(int(np.ceil(len(pairs) / 3)) or 1, 3, figsize=(13, 3.4 * max(1, int(np.ceil(len(pairs) / 3)))),
+                             squeeze=False)
+    rng = np.random.default_rng(0)
+    for ax, (ch, c) in zip(axes.ravel(), pairs):
+        data = diag.residuals[ch]
+        x, y = data.covariates[c["name"]], data.residual
+        ok = np.isfinite(x) & np.isfinite(y)
+        x, y = x[ok], y[ok]
+        idx = rng.choice(len(x), min(len(x), 3000), replace=False)
+        ax.plot(x[idx], y[idx], ".", ms=1.5, alpha=0.3, color="0.5")
+        yv = np.abs(y - np.median(y)) if c["kind"] == "spread" else y
+        cx, m, se = _binned(x, yv)
+        ax.errorbar(cx, m, se, color="C3", lw=2, capsize=2)
+        ax.axhline(0, color="k", lw=0.5)
+        lo, hi = np.quantile(y, [0.01, 0.99])
+        ax.set_ylim(lo, hi)
+        ax.set(xlabel=c["name"], ylabel=f"{ch} residual (sigmas)",
+               title=f"{ch} {c['kind']} vs {c['name']}: omega2 {c['strength']:.3f}, p {c['p']:.0e}")
+        ax.title.set_fontsize(9)
+    for ax in axes.ravel()[len(pairs):]:
+        ax.axis("off")
+    fig.tight_layout()
+    return fig
+
+
+def field_heatmap(diag):
+    """Mean whitened motion residual by where on the field the step began."""
+    fig, axes = subplots(1, 3, figsize=(13, 3.4))
+    for ax, ch in zip(axes, ("forward", "lateral", "turn")):
+        d = diag.residuals[ch]
+        hb = ax.hexbin(d.covariates["x"], d.covariates["y"], C=d.residual, gridsize=18, reduce_C_function=np.mean,
+                       cmap="RdBu_r", vmin=-1, vmax=1, mincnt=20)
+        ax.set(aspect="equal", title=f"{ch} residual by position", xlabel="x (m)", ylabel="y (m)")
+        fig.colorbar(hb, ax=ax, shrink=0.8)
+    fig.tight_layout()
+    return fig
+
+
+def group_panels(diag):
+    """Mean residual per landmark (sensor channels) and per action (motion channels), with 2-SE bars."""
+    fig, axes = subplots(1, 2, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1, 3]})
+    for k, ch in enumerate(("reading", "bearing")):
+        d = diag.residuals[ch]
+        lm = d.covariates["landmark"]
+        ids = np.unique(lm)
+        m = [d.residual[lm == i].mean() for i in ids]
+        se = [2 * d.residual[lm == i].std() / np.sqrt(max((lm == i).sum(), 1)) for i in ids]
+        axes[0].errorbar(np.arange(len(ids)) + 0.15 * k, m, se, fmt="o", label=ch)
+        axes[0].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids])
+    axes[0].axhline(0, color="k", lw=0.5)
+    axes[0].set(xlabel="landmark", ylabel="mean residual (sigmas)", title="per landmark")
+    axes[0].legend(fontsize=8)
+    actions = "action" in diag.residuals["forward"].covariates       # continuous commands have none
+    for k, ch in enumerate(("forward", "lateral", "turn") if actions else ()):
+        d = diag.residuals[ch]
+        a = d.covariates["action"]
+        ids = np.unique(a)
+        m = [d.residual[a == i].mean() * np.sqrt((a == i).sum()) for i in ids]
+        axes[1].plot(np.arange(len(ids)), m, "o-", ms=3, label=ch)
+        axes[1].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids], fontsize=6)
+    axes[1].axhline(0, color="k", lw=0.5)
+    axes[1].set(xlabel="action", ylabel="mean x sqrt(n) (z-score)", title="per action")
+    if actions:
+        axes[1].legend(fontsize=8)
+    else:
+        axes[1].set_title("per action (continuous commands: no actions)")
+    fig.tight_layout()
+    return fig
+
+
+def time_panel(diag):
+    """Residuals over time: a moving mean per channel."""
+    fig, ax = subplots(figsize=(13, 3.2))
+    for ch, d in diag.residuals.items():
+        order = np.argsort(d.time)
+        t, r = d.time[order], d.residual[order]
+        w = max(len(r) // 60, 1)
+        mm = np.convolve(r, np.ones(w) / w, mode="valid") * np.sqrt(w)
+        ax.plot(t[w - 1:] / 60, mm, lw=1, label=ch)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set(xlabel="time (min)", ylabel="moving mean x sqrt(window)", title="residuals over time (z-scores; |z| > 3 is unusual)")
+    ax.legend(fontsize=8, ncol=5)
+    return fig
+
+
+def diagnosis(path: Path, log: Log, diag) -> None:
+    """DIAG/report.html: the verdict in words, the tables, then the panels strongest first."""
+    e = html.escape
+    rows = "".join(
+        f"<tr><td style='text-align:left'>{ch}</td><td>{r['rms']:.3f}</td><td>{r['whiteness_p']:.2g}</td>"
+        + "".join(f"<td>{c['name']} ({c['kind']}) {c['strength']:.3f}</td>" for c in r["covariates"][:3]) + "</tr>"
+        for ch, r in diag.channels.items())
+    cands = "".join(
+        f"<tr><td style='text-align:left'>{c.effect}</td><td>{c.channel}</td><td>{c.delta_bic:.1f}</td>"
+        f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items()))}</td>"
+        f"<td style='text-align:left'>{e(c.explanation)}</td></tr>" for c in diag.candidates)
+    skipped = "".join(f"<li>{e(k)}: {e(v)}</li>" for k, v in diag.skipped.items())
+    body = f"""<!doctype html><html><head><meta charset="utf-8"><title>casm-graph diagnosis</title>
+<style>{STYLE}</style></head><body>
+<h1>Diagnosis: <code>{e(diag.verdict)}</code></h1>
+{''.join(f'<p>{e(w)}</p>' for w in diag.words)}
+<h2>Channels</h2><p>Whitened residuals (1.0 = as noisy as the model says). Whiteness: Ljung-Box p.
+Strength: omega squared, the share of residual variance a covariate explains (mean or spread).</p>
+<table><tr><th>channel</th><th>rms</th><th>whiteness p</th><th>strongest</th><th>2nd</th><th>3rd</th></tr>{rows}</table>
+<h2>Candidate effects</h2><p>Sorted by delta BIC (negative favours the effect); held-out: gain in log-likelihood of
+time blocks hidden from the fit.</p>
+<table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>fitted</th><th>physics</th></tr>{cands}</table>
+{f'<p>Not applicable to this log:</p><ul>{skipped}</ul>' if skipped else ''}
+<h2>Where the model fails</h2>{png(covariate_panels(diag))}
+<h2>On the field</h2>{png(field_heatmap(diag))}
+<h2>Per landmark and per action</h2>{png(group_panels(diag))}
+<h2>Over time</h2>{png(time_panel(diag))}
+<p style="color:#777">{diag.seconds:.1f} s</p></body></html>"""
+    Path(path).write_text(body)
