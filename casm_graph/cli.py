@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import multiprocessing
+import os
 import shlex
 import signal
 import sys
+import threading
 import time
 import warnings
 
@@ -17,7 +20,7 @@ from tqdm import tqdm
 from casm_graph.fit.methods import METHODS, Progress
 from casm_graph.io import mrclam
 from casm_graph.io.log import LogError
-from casm_graph.io.output import atomic_dir, checked_out
+from casm_graph.io.output import atomic_dir, checked_out, discard_partial
 from casm_graph.models.effects import catalog
 from casm_graph.models.effects.regional_motion_noise import determined
 from casm_graph.pipeline import calibrate as calibrate_run
@@ -258,12 +261,17 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised like Ctrl-C so that every half-written output is removed on the way out."""
+def _stop(signum, frame):
+    """SIGTERM or Ctrl-C: stop the workers, remove every half-written output, leave at once.
 
-
-def _terminate(signum, frame):
-    raise Terminated()
+    Leaving from the handler itself, not by raising: a signal can land while the main thread runs a
+    C callback (numba's compiler, GTSAM), where a raised exception would be swallowed."""
+    for child in multiprocessing.active_children():
+        child.terminate()
+    discard_partial()
+    word = "terminated" if signum == signal.SIGTERM else "interrupted"
+    print(f"casm-graph: {word}; nothing written", file=sys.stderr, flush=True)
+    os._exit(1)
 
 
 def command_line(args) -> str:
@@ -275,22 +283,20 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser().parse_args(argv)
     args.argv = argv
-    previous = signal.signal(signal.SIGTERM, _terminate)
+    own = threading.current_thread() is threading.main_thread()      # only the main thread may set handlers
+    previous = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if own else {}
     try:
         return args.func(args)
     except LogError as exc:
         print(f"casm-graph: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as exc:
-        print(f"casm-graph: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}; nothing written",
-              file=sys.stderr)
-        return 1
     except Exception as exc:  # any other failure: one line, status 1
         first = (str(exc).strip().splitlines() or [""])[0]       # one line, even for GTSAM's many-line messages
         print(f"casm-graph: failed: {type(exc).__name__}: {first}", file=sys.stderr)
         return 1
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 if __name__ == "__main__":

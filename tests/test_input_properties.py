@@ -180,3 +180,68 @@ def test_valid_bundle_with_one_column_of_junk_readings(readings):
                 assert np.isnan(got)
             else:
                 assert v is not None and got == v, (r, got)
+
+
+# ----------------------------------------------------------------------------------------------- the CLI
+SMALL = {}
+
+
+def small_bundle() -> tuple:
+    """A 40-second simulated log (built once), as the columns the CLI test perturbs."""
+    if not SMALL:
+        from casm_graph.sim.protocols import simulate
+        log, _ = simulate("aibo", minutes=40 / 60, seed=3)
+        SMALL["log"] = log
+    return SMALL["log"]
+
+
+def write_bundle(d: Path, log, reading, bearing, landmark, t_scale: float) -> None:
+    d.mkdir()
+    with open(d / "landmarks.csv", "w") as f:
+        f.write("landmark,x,y\n" + "".join(f"{i},{x!r},{y!r}\n" for i, (x, y) in zip(log.landmark_ids, log.landmark_xy)))
+    with open(d / "commands.csv", "w") as f:
+        f.write("t,action\n" + "".join(f"{t * t_scale!r},{a}\n" for t, a in zip(log.t, log.action)))
+    with open(d / "observations.csv", "w") as f:
+        f.write("t,landmark,reading,bearing\n" + "".join(
+            f"{t * t_scale!r},{k},{r},{b}\n" for t, k, r, b in zip(log.obs_t, landmark, reading, bearing)))
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_calibrate_gives_a_sane_model_or_one_line(data):
+    """Perturbed small logs through ``casm-graph calibrate``: exit 0 with a finite model.json and complete output,
+    or exit 2 with one line and nothing written; never a traceback, never NaN."""
+    import json
+    import subprocess
+    import sys
+    log = small_bundle()
+    n = len(log.obs_t)
+    reading = [repr(float(x)) for x in log.obs_reading]
+    bearing = [repr(float(x)) for x in log.obs_bearing]
+    landmark = [str(int(k)) for k in log.obs_landmark]
+    for _ in range(data.draw(st.integers(0, 4), label="cells changed")):
+        i = data.draw(st.integers(0, n - 1), label="row")
+        col = data.draw(st.sampled_from(["reading", "bearing", "landmark"]), label="column")
+        cell = data.draw(st.one_of(st.sampled_from(WEIRD), st.floats(-1e12, 1e12).map(repr)), label="cell")
+        {"reading": reading, "bearing": bearing, "landmark": landmark}[col][i] = cell.replace("\n", " ").replace('"', "")
+    if data.draw(st.booleans(), label="wipe a channel"):
+        col = data.draw(st.sampled_from([reading, bearing]), label="channel")
+        col[:] = [""] * n
+    t_scale = data.draw(st.sampled_from([1.0, 1.0, 1e-9, 1e6]), label="time scale")
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp) / "log"
+        write_bundle(d, log, reading, bearing, landmark, t_scale)
+        out = Path(tmp) / "run"
+        r = subprocess.run([sys.executable, "-m", "casm_graph.cli", "calibrate", str(d), "--out", str(out), "--quiet"],
+                           capture_output=True, text=True, timeout=600)
+        assert "Traceback" not in r.stderr
+        if r.returncode == 0:
+            assert sorted(p.name for p in out.iterdir()) == ["model.json", "report.html", "trajectory.csv"]
+            text = (out / "model.json").read_text()
+            assert "NaN" not in text and "Infinity" not in text
+            m = json.loads(text)
+            assert m["sensor_model"]["reading_sigma"] > 0 and m["sensor_model"]["bearing_sigma"] > 0
+        else:
+            assert r.returncode == 2, r.stderr
+            assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+            assert not out.exists()

@@ -31,7 +31,8 @@ def huber_loss(e: np.ndarray, k: float = HUBER) -> np.ndarray:
     The rows weighted by :func:`huber` give the gradient of the sum of these (IRLS), which is what a
     least-squares step that reports this cost must use."""
     a = np.abs(e)
-    return np.where(a > k, k * a - 0.5 * k * k, 0.5 * a * a)
+    m = np.minimum(a, k)
+    return m * (a - 0.5 * m)
 
 
 def mad_scale(x: np.ndarray) -> float:

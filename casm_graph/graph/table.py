@@ -114,10 +114,12 @@ class Problem:
     """The graph of one log under fixed noise levels, evaluated and linearised in numpy.
 
     Holds the fixed data (layout, measurements, sigmas, and the sightings' inlier ``weight`` of a
-    false-detection mixture when one is fitted); the variables travel as a :class:`State`.
+    false-detection mixture when one is fitted); the variables travel as a :class:`State`. Sightings
+    count through Huber's loss (:mod:`casm_graph.graph.robust`); ``huber=False`` makes them Gaussian,
+    as the marginal likelihood of the uncertainty step models them.
     """
 
-    def __init__(self, log: Log, lay: Layout, model: Model, weight: np.ndarray | None = None):
+    def __init__(self, log: Log, lay: Layout, model: Model, weight: np.ndarray | None = None, huber: bool = True):
         self.log, self.lay = log, lay
         self.motion_sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(lay.seg_steps)[:, None]
         lm = log.landmark_xy[log.landmark_index]
@@ -130,6 +132,7 @@ class Problem:
         w = np.ones(len(log.obs_t)) if weight is None else np.asarray(weight, float)
         self.r_w, self.b_w = np.sqrt(w[r]), np.sqrt(w[b])
         self.counts = {"reading": float(np.sum(w[r])), "bearing": float(np.sum(w[b]))}
+        self.k = robust.HUBER if huber else np.inf
 
     def rows(self, st: State, jacobians: bool = True) -> Rows:
         lay = self.lay
@@ -139,13 +142,13 @@ class Problem:
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
-        loss = float(np.sum(self.r_w ** 2 * robust.huber_loss(re)))
-        w = robust.huber(re) * self.r_w       # a wild sighting pulls like one HUBER sigmas off, no more
+        loss = float(np.sum(self.r_w ** 2 * robust.huber_loss(re, self.k)))
+        w = robust.huber(re, self.k) * self.r_w       # a wild sighting pulls like one HUBER sigmas off, no more
         re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
-        loss += float(np.sum(self.b_w ** 2 * robust.huber_loss(be)))
-        w = robust.huber(be) * self.b_w
+        loss += float(np.sum(self.b_w ** 2 * robust.huber_loss(be, self.k)))
+        w = robust.huber(be, self.k) * self.b_w
         be, bJ = be * w, bJ * w[:, None]
         pe = np.concatenate([st.velocities.ravel() / VELOCITY_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
         return Rows(ae, aJ, re, rJ, be, bJ, pe, loss)

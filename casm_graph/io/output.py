@@ -61,12 +61,30 @@ def _fresh(path: Path, kind: str) -> Path:
             continue
 
 
+_PARTIAL: set[Path] = set()            # temporary directories being written now
+_SET_ASIDE: dict[Path, Path] = {}      # outputs being replaced: their place -> where they wait meanwhile
+
+
+def discard_partial() -> None:
+    """Remove every half-written output and put back any output that was being replaced.
+
+    For a signal handler that must leave at once (a signal can land inside a C callback, where an
+    exception raised to unwind :func:`atomic_dir` would be swallowed)."""
+    for tmp in list(_PARTIAL):
+        shutil.rmtree(tmp, ignore_errors=True)
+    for path, old in list(_SET_ASIDE.items()):
+        if not path.exists() and (old / path.name).exists():
+            os.rename(old / path.name, path)
+        shutil.rmtree(old, ignore_errors=True)
+
+
 @contextmanager
 def atomic_dir(out, force: bool = False, inputs: Iterable = ()) -> Iterator[Path]:
     """Yield an empty temporary directory; on success it replaces ``out`` in one rename, on any failure it goes."""
     path = checked_out(out, force, inputs)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _fresh(path, "partial")
+    _PARTIAL.add(tmp)
     try:
         yield tmp
         for f in tmp.rglob("*"):              # the data reaches the disk before the rename makes it visible
@@ -75,14 +93,18 @@ def atomic_dir(out, force: bool = False, inputs: Iterable = ()) -> Iterator[Path
                     os.fsync(fh.fileno())
         if path.exists():
             old = _fresh(path, "old")
+            _SET_ASIDE[path] = old
             os.rename(path, old / path.name)
             os.rename(tmp, path)
+            del _SET_ASIDE[path]
             shutil.rmtree(old, ignore_errors=True)
         else:
             os.rename(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        _PARTIAL.discard(tmp)
 
 
 def strict(x):

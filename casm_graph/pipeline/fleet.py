@@ -23,9 +23,9 @@ drifted robot and family), ``drifted`` (robot -> families), ``families`` (every 
 scale, its std, sigma, actions beyond 3 sigma, flagged), ``flags`` (every flagged figure) and
 ``series`` (per robot every figure over its sessions with its std); see :mod:`casm_graph.analysis.drift`.
 
-Dask is imported only when a fleet runs (``pip install "dask[distributed]"``). A local cluster starts its
-workers by spawning processes, so a script that calls :func:`calibrate_fleet` without ``scheduler``
-must do so under ``if __name__ == "__main__":`` (the command line and notebooks need nothing).
+A local cluster starts its workers by spawning processes, so a script that calls :func:`calibrate_fleet`
+without ``scheduler`` must do so under ``if __name__ == "__main__":`` (the command line and notebooks
+need nothing).
 """
 from __future__ import annotations
 
