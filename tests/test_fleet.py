@@ -2,6 +2,7 @@
 drift over time flags the robot that wears, and emcee runs on a Dask client through DaskPool."""
 import csv
 import json
+import math
 import os
 import re
 import shutil
@@ -86,6 +87,7 @@ def _stop(procs):
 
 
 def test_fleet_on_a_dask_scheduler_matches_standalone_calibrate(tmp_path, four):
+    """fleet, diagnose and uncertainty on a scheduler and two workers started with Dask's own commands."""
     procs, sched_file = _start_cluster(tmp_path)
     try:
         from distributed import Client
@@ -94,8 +96,23 @@ def test_fleet_on_a_dask_scheduler_matches_standalone_calibrate(tmp_path, four):
         address = json.loads(sched_file.read_text())["address"]
         out = tmp_path / "out"
         assert cli.main(["fleet", four, "--out", out, "--scheduler", address, "--quiet"]) == 0
+        first = find_bundles(four)[0].relative_to(four).as_posix()
+        run = out / first
+        candidates = ["--candidate", "battery_fade", "--candidate", "actuator_lag"]
+        assert cli.main(["diagnose", four / first, "--model", run / "model.json", "--out", tmp_path / "dd",
+                         "--scheduler", address, "--quiet", *candidates]) == 0
+        assert cli.main(["uncertainty", four / first, "--model", run / "model.json", "--out", tmp_path / "uu",
+                         "--scheduler", address, "--walkers", "12", "--max-steps", "100", "--quiet"]) == 0
     finally:
         _stop(procs)
+    assert cli.main(["diagnose", four / first, "--model", run / "model.json", "--out", tmp_path / "dl",
+                     "--workers", "1", "--quiet", *candidates]) == 0
+    on_cluster, local = (json.loads((tmp_path / d / "diagnosis.json").read_text()) for d in ("dd", "dl"))
+    assert on_cluster["verdict"] == local["verdict"]
+    assert [(c["effect"], c["delta_bic"]) for c in on_cluster["candidates"]] == \
+        [(c["effect"], c["delta_bic"]) for c in local["candidates"]]
+    post = json.loads((tmp_path / "uu" / "posterior.json").read_text())
+    assert all(all(map(math.isfinite, v["ci90"])) for v in post["parameters"].values())
     rows = rows_of(out)
     assert [r["path"] for r in rows] == [b.relative_to(four).as_posix() for b in find_bundles(four)]
     assert all(r["status"] == "ok" and r["error"] == "" for r in rows)
