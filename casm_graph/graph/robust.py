@@ -2,7 +2,7 @@
 
 A single wild reading must not drag a least-squares step: whitened sighting residuals count
 quadratically up to ``HUBER`` sigmas and linearly beyond (iteratively reweighted), residuals beyond
-``GATE`` sigmas of a robust scale are set aside from the noise estimates, and the sensor curve's
+``GATE`` sigmas are set aside from the noise estimates, and the sensor curve's
 first fit is a Huber regression (scipy's ``least_squares`` with ``loss="huber"``) at a scale taken
 from the median absolute deviation.
 """
@@ -13,7 +13,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 HUBER = 2.0          # sigmas: quadratic inside, linear beyond
-GATE = 5.0           # sigmas of a robust scale: beyond this a sighting is set aside from noise estimates
+GATE = 5.0           # sigmas: beyond this a sighting is set aside from noise estimates
 # E[min(z^2, HUBER |z|)] for a standard normal z, which works out to P(|z| <= HUBER): the Huber-weighted sum
 # of squares of Gaussian residuals is this fraction of the plain one, so noise estimates from it divide by it.
 HUBER_EFFICIENCY = float(2 * stats.norm.cdf(HUBER) - 1)
@@ -42,12 +42,6 @@ def mad_scale(x: np.ndarray) -> float:
     if not len(x):
         return 1.0
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) or 1.0
-
-
-def inliers(z: np.ndarray, gate: float = GATE) -> np.ndarray:
-    """Mask of whitened residuals within ``gate`` robust sigmas (NaN counts as out)."""
-    z = np.asarray(z, float)
-    return np.isfinite(z) & (np.abs(z) <= gate * max(mad_scale(z), 1e-12))
 
 
 def polyfit(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:

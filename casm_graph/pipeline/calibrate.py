@@ -76,6 +76,17 @@ def parse_regions(text: str | None, log: Log):
     return Regions(tuple(v[2:]), grid)
 
 
+def check_request(options: CalibrateOptions) -> list:
+    """The effect classes ``options`` ask for; an unknown method or effect or a bad degree is a LogError (before
+    any work, and before the log is even read when the command line asks)."""
+    if options.method not in METHODS and options.method not in SCASM_METHODS:
+        raise LogError(f"unknown method {options.method!r} (known: {', '.join(sorted([*METHODS, *SCASM_METHODS]))})")
+    classes = [get_effect(e) if isinstance(e, str) else e for e in options.effects]
+    if not 1 <= options.sensor_degree <= 6:
+        raise LogError(f"--sensor-degree must be between 1 and 6 (got {options.sensor_degree})")
+    return classes
+
+
 def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progress | None = None,
               command: str | None = None, **kw) -> Calibration:
     """Calibrate ``log`` as ``options`` say (or keyword arguments of :class:`CalibrateOptions`); writes nothing.
@@ -84,16 +95,12 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
     """
     options = replace(options if options is not None else CalibrateOptions(), **kw)
     options = replace(options, effects=tuple(options.effects))
+    classes = check_request(options)
     check_identifiable(log, options.sensor_degree, options.method)
     if options.method in SCASM_METHODS:
         cal = scasm_run.calibrate(log, options, progress=progress)
         cal.command = command
         return cal
-    if options.method not in METHODS:
-        raise LogError(f"unknown method {options.method!r} (known: {', '.join(sorted([*METHODS, *SCASM_METHODS]))})")
-    classes = [get_effect(e) if isinstance(e, str) else e for e in options.effects]   # unknown names fail first
-    if not 1 <= options.sensor_degree <= 6:
-        raise LogError(f"--sensor-degree must be between 1 and 6 (got {options.sensor_degree})")
     if log.controls is None:
         for cls in classes:
             why = cls(log).applicable(log)
@@ -137,11 +144,7 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
     checked_out(out, force, inputs=[log_dir])
     options = CalibrateOptions(method=method, sensor_degree=sensor_degree, effects=tuple(effects), seed=seed,
                                regions=regions)
-    if method not in METHODS and method not in SCASM_METHODS:
-        raise LogError(f"unknown method {method!r} (known: {', '.join(sorted([*METHODS, *SCASM_METHODS]))})")
-    for e in effects:
-        if isinstance(e, str):
-            get_effect(e)
+    check_request(options)
     log = load(log_dir)
     cal = calibrate(log, options, progress=progress, command=command)
     if progress is not None:

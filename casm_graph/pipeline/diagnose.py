@@ -37,7 +37,7 @@ def _trajectory_csv(log: Log, model_path: Path) -> np.ndarray | None:
 def check_compatible(log: Log, model: Model, source: str) -> None:
     missing = sorted(set(log.action_ids.tolist()) - set(model.action_ids.tolist()))
     if missing:
-        raise LogError(f"{source}: the model has no velocity for action(s) {missing[:10]} that the log runs")
+        raise LogError(f"{source} has no velocity for action(s) {missing[:10]} that the log runs")
 
 
 def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
@@ -90,8 +90,6 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     model_path = Path(model_path)
     model = Model.load(model_path)
     log = load(log_dir)
-    if log.controls is None:
-        check_compatible(log, model, model_path.name)
     diag = diagnose(log, model, extra_effects=extra_effects, candidates=candidates, workers=workers,
                     progress=progress, poses=_trajectory_csv(log, model_path), client=client)
     if progress is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from casm_graph.io.log import Log, LogError
+from casm_graph.io.log import write as write_bundle
 from casm_graph.sim import aibo
 from casm_graph.sim import floor as simulate_floor
 from casm_graph.sim import walk_1d as simulate_1d
@@ -36,4 +37,4 @@ def simulate(protocol: str = "aibo", minutes: float = 15.0, seed: int = 0, effec
 
 def write_log(log: Log, directory, truth: dict | None = None) -> Path:
     """Write ``log`` as a bundle in ``directory`` (with truth_model.json when ``truth`` is given)."""
-    return aibo.write(log, truth, directory) if truth is not None else aibo.logmod.write(log, directory)
+    return aibo.write(log, truth, directory) if truth is not None else write_bundle(log, directory)
