@@ -18,7 +18,7 @@ import warnings
 from tqdm import tqdm
 
 from casm_graph.fit.methods import METHODS, Progress
-from casm_graph.io import mrclam
+from casm_graph.io import mrclam, plaza
 from casm_graph.io.log import LogError
 from casm_graph.io.output import atomic_dir, checked_out, discard_partial
 from casm_graph.models.effects import catalog
@@ -75,6 +75,9 @@ def _simulate(args) -> int:
         options["bearing_sigma"] = args.bearing_sigma
     if args.protocol == "floor":
         options = {}
+    options.update(simulators.parse_options(args.protocol, args.option, taken=tuple(options)))
+    if args.sensor is not None:
+        options["sensor"] = args.sensor
     log, truth = simulators.simulate(args.protocol, minutes=args.minutes, seed=args.seed, effects=effects, **options)
     with atomic_dir(args.out, force=args.force) as tmp:
         simulators.write_log(log, tmp, truth)
@@ -111,7 +114,8 @@ def _calibrate(args) -> int:
               f"{args.out}/report.html)", file=sys.stderr)
     print(f"calibrated {args.log} with {args.method} in {m.fit['seconds']:.1f} s "
           f"({m.fit['iterations']} iterations, converged={m.fit['converged']})")
-    print(f"  reading sigma {m.reading_sigma:.3f}, bearing sigma {m.bearing_sigma:.3f} rad")
+    print(f"  reading sigma {m.noise_text('reading', '.3f')}, bearing sigma {m.noise_text('bearing', '.3f')}"
+          + (" rad" if m.has("bearing") else ""))
     slopes = m.fit.get("start_slopes", [])
     if len(slopes) > 1:
         print(f"  range start slope {max(slopes, key=lambda t: t[1])[0]:.3f}, the likeliest after the held coarse "
@@ -148,6 +152,15 @@ def _import_mrclam(args) -> int:
     print(f"wrote {args.out}: robot {args.robot}, {log.steps} command steps ({info['command_rows_dropped']} "
           f"repeated times dropped), {len(log.obs_t)} landmark observations "
           f"({info['robot_sightings_dropped']} sightings of robots dropped), {log.minutes:.1f} min, truth.csv from Vicon")
+    return 0
+
+
+def _import_plaza(args) -> int:
+    log, info = plaza.import_plaza(args.file, args.out, force=args.force, minutes=args.minutes)
+    dropped = "; ".join(plaza.drops(info)) or "none dropped"
+    cut = f", {info['ranges_after_minutes_cut']} later ranges cut" if args.minutes is not None else ""
+    print(f"wrote {args.out}: Plaza 1, {log.steps} command steps, {len(log.obs_t)} range observations "
+          f"({dropped}{cut}), {log.minutes:.1f} min, truth.csv from GT")
     return 0
 
 
@@ -201,6 +214,12 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--protocol", default="aibo", choices=["aibo", "scasm-1d", "floor"],
                    help="aibo: the EKFS-EM field (default); scasm-1d: SCASM's walk to and from one beacon; "
                         "floor: a wheeled robot on a floor whose motion noise differs by region (MCL paper)")
+    s.add_argument("--sensor", default=None, choices=["range", "bearing", "both"],
+                   help="which cells the observations fill: range (readings only; on the floor seen all around), "
+                        "bearing (bearings only) or both (default); aibo and floor only")
+    s.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                   help="set a field of the protocol's simulator config (repeatable), e.g. floor: n_landmarks=4, "
+                        "range_scale=1.05, range_offset=0.3, nlos_fraction=0.1, nlos_scale=1.5, size=10,6")
     s.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     s.set_defaults(func=_simulate)
     c = sub.add_parser("calibrate", help="learn the action and sensor models of a log")
@@ -233,6 +252,12 @@ def parser() -> argparse.ArgumentParser:
     i.add_argument("--out", required=True)
     i.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     i.set_defaults(func=_import_mrclam)
+    pz = sub.add_parser("import-plaza", help="convert the CMU Plaza 1 range-only data set into a log bundle")
+    pz.add_argument("file", metavar="FILE.mat", help="the data set's Plaza1.mat")
+    pz.add_argument("--out", required=True, metavar="LOG")
+    pz.add_argument("--minutes", type=float, default=None, metavar="M", help="keep only the first M minutes")
+    pz.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
+    pz.set_defaults(func=_import_plaza)
     e = sub.add_parser("effects", help="list the effect catalog")
     e.set_defaults(func=_effects)
     u = sub.add_parser("uncertainty", help="posterior of the noise levels (emcee) and Laplace std of the rest")

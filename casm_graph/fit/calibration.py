@@ -114,9 +114,10 @@ class Calibration:
                  f"  log: {kind}, {log.steps} steps, {len(log.obs_t)} sightings, {log.minutes:.1f} min",
                  f"  fit: {'converged' if fit.get('converged') else 'NOT converged'} after {fit.get('iterations')} "
                  f"iterations in {fit.get('seconds', 0):.1f} s, log-likelihood {fit.get('log_likelihood', float('nan')):,.1f}",
-                 f"  sensor: reading sigma {m.reading_sigma:.4g} (reading units), bearing sigma {m.bearing_sigma:.4g} rad, "
-                 f"over distances {m.distance_range[0]:.2f}-{m.distance_range[1]:.2f} m",
-                 "  reading = " + " + ".join(f"{c:.4g} d^{i}" for i, c in enumerate(m.reading_poly)),
+                 f"  sensor: reading sigma {m.noise_text('reading')} (reading units), bearing sigma "
+                 f"{m.noise_text('bearing')} rad, over distances {m.distance_range[0]:.2f}-{m.distance_range[1]:.2f} m",
+                 ("  reading = " + " + ".join(f"{c:.4g} d^{i}" for i, c in enumerate(m.reading_poly))
+                  if m.has("reading") else "  reading: not measured (a bearing-only log)"),
                  "  motion noise per step: " + ", ".join(f"{s:.3g}" for s in m.motion_noise) + " (m, m, rad)"]
         if log.controls is None and m.velocity_std is not None and np.isfinite(m.velocity_std).any():
             med = np.nanmedian(m.velocity_std, axis=0)

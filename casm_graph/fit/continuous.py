@@ -47,6 +47,8 @@ MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is nume
                              # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
 INIT_KNOT_DT = 0.5
 INIT_WINDOW = 5.0
+RANGE_WINDOW = 20.0          # s: with ranges only a window's heading shows through its motion alone (Plaza 1: 5 s
+                             # windows, about 5 m against 0.5 m range errors, started headings a radian off)
 SLOPE_FACTORS = np.geomspace(0.75, 1.33, 15)   # range-line slopes tried, relative to the sensor hypothesis's
 SLOPE_STARTS = 3             # range slopes whose windows agree best, each taken through the held coarse rounds; the
                              # likeliest goes on (MRCLAM robot 4: the best-agreeing slope led to a speed map 22 % off,
@@ -376,37 +378,112 @@ def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: 
     return np.array([mx[i, 0], my[i, 0], headings[i]]), float(cost[i])
 
 
-def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: float = INIT_WINDOW,
-               cell: float = 0.1) -> Start:
+def window_pose_ranges(fix_lm: np.ndarray, dist: np.ndarray, rel: np.ndarray, headings: np.ndarray,
+                       guess: np.ndarray, spread: float, iterations: int = 6):
+    """Start pose of one window from ranges alone: multilateration for every candidate start heading.
+
+    Sighting i, taken after the robot moved ``rel[i]`` in the window-start frame, puts the window
+    start p0 on the circle |landmark - p0 - R(theta0) (dx, dy)| = dist; for each theta0, p0 is found by
+    Gauss-Newton from ``guess`` (Huber-weighted at ``spread``); the heading whose circles agree best
+    wins. The heading is seen only through the motion within the window (the caller checks there is some).
+    """
+    H = len(headings)
+    c0, s0 = np.cos(headings)[:, None], np.sin(headings)[:, None]
+    cx = fix_lm[None, :, 0] - (c0 * rel[None, :, 0] - s0 * rel[None, :, 1])
+    cy = fix_lm[None, :, 1] - (s0 * rel[None, :, 0] + c0 * rel[None, :, 1])
+    p = np.tile(np.asarray(guess, float)[:2], (H, 1))
+    for _ in range(iterations):
+        dx, dy = cx - p[:, :1], cy - p[:, 1:]
+        r = np.maximum(np.hypot(dx, dy), 1e-9)
+        res = r - dist[None, :]
+        wgt = np.minimum(1.0, 2.0 * spread / np.maximum(np.abs(res), 1e-12))
+        jx, jy = -dx / r, -dy / r
+        a11, a12, a22 = (wgt * jx * jx).sum(1), (wgt * jx * jy).sum(1), (wgt * jy * jy).sum(1)
+        b1, b2 = -(wgt * jx * res).sum(1), -(wgt * jy * res).sum(1)
+        a11, a22 = a11 + 1e-6, a22 + 1e-6
+        det = a11 * a22 - a12 ** 2
+        p[:, 0] += (a22 * b1 - a12 * b2) / det
+        p[:, 1] += (a11 * b2 - a12 * b1) / det
+    res = np.hypot(cx - p[:, :1], cy - p[:, 1:]) - dist[None, :]
+    cost = np.minimum(res ** 2 / spread ** 2, 9.0).sum(axis=1)
+    i = int(np.argmin(cost))
+    return np.array([p[i, 0], p[i, 1], headings[i]]), float(cost[i])
+
+
+def window_pose_bearings(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarray, headings: np.ndarray,
+                         spread: float):
+    """Start pose of one window from bearings alone: the rays to the landmarks intersected.
+
+    For each candidate start heading theta0, sighting i's ray leaves the robot's position
+    p0 + R(theta0) (dx, dy) at the angle theta0 + dtheta + bearing and must pass through its landmark:
+    linear least squares in p0 on the rays' normals; the heading whose rays meet best (perpendicular
+    misses in ``spread`` units, capped, and landmarks behind the robot penalised) wins.
+    """
+    th = headings[:, None] + rel[None, :, 2] + bearing[None, :]
+    nx, ny = -np.sin(th), np.cos(th)
+    c0, s0 = np.cos(headings)[:, None], np.sin(headings)[:, None]
+    qx = fix_lm[None, :, 0] - (c0 * rel[None, :, 0] - s0 * rel[None, :, 1])
+    qy = fix_lm[None, :, 1] - (s0 * rel[None, :, 0] + c0 * rel[None, :, 1])
+    rhs = nx * qx + ny * qy
+    a11, a12, a22 = (nx * nx).sum(1) + 1e-9, (nx * ny).sum(1), (ny * ny).sum(1) + 1e-9
+    b1, b2 = (nx * rhs).sum(1), (ny * rhs).sum(1)
+    det = a11 * a22 - a12 ** 2
+    px, py = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+    ex, ey = qx - px[:, None], qy - py[:, None]
+    miss = nx * ex + ny * ey
+    ahead = np.cos(th) * ex + np.sin(th) * ey
+    cost = (np.minimum(miss ** 2 / spread ** 2, 9.0) + np.where(ahead > 0, 0.0, 9.0)).sum(axis=1)
+    i = int(np.argmin(cost))
+    return np.array([px[i], py[i], headings[i]]), float(cost[i])
+
+
+def grid_cell(log: Log, finest: float = 0.1, cells: int = 150) -> float:
+    """Cell of the start's grid smoother: ``finest`` metres, coarser on fields larger than ``cells`` of it
+    (a plaza of beacons 70 m apart would otherwise need half a million cells per knot)."""
+    return max(finest, float(np.ptp(log.landmark_xy, axis=0).max()) / cells)
+
+
+def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: float | None = None,
+               cell: float | None = None) -> Start:
     """Global start from nothing but the log and the map.
 
     1. The sensor hypothesis (reading = k d**p) by the evidence of the grid smoother of
        :func:`casm_graph.fit.initialise.locate`; a range (p = +1) starts as the line reading = k d.
     2. The command maps start at the nominal velocity = command (the robot's own commands are the
        only velocity scale in the log); the graph learns them.
-    3. Each ``window`` seconds with three or more sightings gets its start pose by
-       :func:`window_pose` (a global search over its start heading, sightings placed by nominal
-       dead reckoning within the window); the trajectory is dead-reckoned from window to window.
+    3. Each ``window`` seconds (``INIT_WINDOW``, ``RANGE_WINDOW`` with ranges only) with three or more sightings gets its start pose by a global search
+       over its start heading, sightings placed by nominal dead reckoning within the window:
+       :func:`window_pose` with readings and bearings, :func:`window_pose_ranges` (multilateration)
+       on a range-only log, :func:`window_pose_bearings` (triangulation) on a bearing-only one; the
+       trajectory is dead-reckoned from window to window.
     """
     T, tp, dt = log.steps, log.pose_times, log.dt
     t0 = tp[0]
-    n_knots = int(np.ceil((tp[-1] - t0) / knot_dt)) + 1
-    obs_knot = np.clip(np.round((log.obs_t - t0) / knot_dt).astype(int), 0, n_knots - 1)
-    n_c = int(np.ceil((tp[-1] - t0) / (3 * knot_dt))) + 1
-    c_knot = np.clip(np.round((log.obs_t - t0) / (3 * knot_dt)).astype(int), 0, n_c - 1)
-    speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
-    loc = locate(log, obs_knot, n_knots, knot_dt, c_knot, n_c, len(model.reading_poly) - 1, cell,
-                 speed=max(speed, 0.05))
-    p_hyp, k_hyp = loc.hypothesis
-    poly0 = loc.poly
-    if p_hyp == 1.0:
-        poly0 = np.zeros(len(model.reading_poly))
-        poly0[1] = k_hyp
+    has_r, has_b = ~np.isnan(log.obs_reading), ~np.isnan(log.obs_bearing)
+    both = has_r & has_b
+    mode = "both" if both.sum() >= MIN_SIGHTINGS else ("range" if has_r.sum() >= has_b.sum() else "bearing")
     cm = model.command
     nominal = replace(for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0), lag=cm.lag)
+    n_knots = int(np.ceil((tp[-1] - t0) / knot_dt)) + 1
+    obs_knot = np.clip(np.round((log.obs_t - t0) / knot_dt).astype(int), 0, n_knots - 1)
+    loc = None
+    poly0 = np.zeros(len(model.reading_poly))
+    p_hyp, k_hyp = float("nan"), float("nan")
+    if mode != "bearing":
+        n_c = int(np.ceil((tp[-1] - t0) / (3 * knot_dt))) + 1
+        c_knot = np.clip(np.round((log.obs_t - t0) / (3 * knot_dt)).astype(int), 0, n_c - 1)
+        speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
+        loc = locate(log, obs_knot, n_knots, knot_dt, c_knot, n_c, len(model.reading_poly) - 1,
+                     cell if cell is not None else grid_cell(log), speed=max(speed, 0.05))
+        p_hyp, k_hyp = loc.hypothesis
+        poly0 = loc.poly
+        if p_hyp == 1.0:
+            poly0 = np.zeros(len(model.reading_poly))
+            poly0[1] = k_hyp
     out = model.with_(command=nominal, reading_poly=poly0)
 
-    ob = np.flatnonzero(~np.isnan(log.obs_bearing) & ~np.isnan(log.obs_reading))
+    window = window if window is not None else RANGE_WINDOW if mode == "range" else INIT_WINDOW
+    ob = np.flatnonzero({"both": both, "range": has_r, "bearing": has_b}[mode])
     ob = ob[np.argsort(log.obs_step[ob], kind="stable")]
     step = log.obs_step[ob]
     lm = log.landmark_xy[log.landmark_index[ob]]
@@ -419,14 +496,33 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
     rels = [dead_reckon(log.controls[a:b], dt[a:b], out, np.zeros(3)) for a, b in spans]
     sels = [np.flatnonzero(w_of == w) for w in range(n_win)]
     d_max = 1.5 * np.ptp(log.landmark_xy, axis=0).max() + 3.0
+    extent = float(np.ptp(log.landmark_xy, axis=0).max())
+    if loc is not None and mode == "range":
+        spread = max(0.15, 1.4826 * float(np.median(np.abs(loc.residual))) / max(abs(k_hyp), 1e-9))
+    else:
+        spread = max(0.15, 0.01 * extent)
+    t_knot = t0 + knot_dt * np.arange(n_knots)
 
     def place(poly):
-        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob])
+        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob]) if mode != "bearing" else None
         starts, total = {}, 0.0
         for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
-            if len(sel) >= 3:
-                starts[w], c = window_pose(lm[sel], dist[sel], log.obs_bearing[ob[sel]], rel[step[sel] - a], headings)
-                total += c
+            if len(sel) < 3:
+                continue
+            r = rel[step[sel] - a]
+            if mode == "both":
+                starts[w], c = window_pose(lm[sel], dist[sel], log.obs_bearing[ob[sel]], r, headings)
+            elif mode == "bearing":
+                if len(np.unique(lm[sel], axis=0)) < 2:
+                    continue
+                starts[w], c = window_pose_bearings(lm[sel], log.obs_bearing[ob[sel]], r, headings, spread)
+            else:
+                # the heading shows only through motion: the window must move a few range errors
+                if np.hypot(*rel[:, :2].T).max() < 3 * spread or len(np.unique(lm[sel], axis=0)) < 2:
+                    continue
+                guess = loc.mean[min(int(np.searchsorted(t_knot, tp[a])), n_knots - 1)]
+                starts[w], c = window_pose_ranges(lm[sel], dist[sel], r, headings, guess, spread)
+            total += c
         return starts, total
 
     def start_from(poly, starts):
@@ -438,9 +534,11 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
             seg = dead_reckon(log.controls[a:b], dt[a:b], m, begin)
             poses[a:b + 1] = seg
             prev = seg[-1]
-        res = log.obs_reading[ob] - np.polynomial.polynomial.polyval(np.hypot(*(lm - poses[step, :2]).T), poly)
-        m = m.with_(reading_sigma=float(max(1.4826 * np.median(np.abs(res)), 1e-6)))
-        return Start(poses, m, loc.hypothesis, loc.log_evidence, len(starts) / max(n_win, 1), float(poly[1]))
+        if mode != "bearing":
+            res = log.obs_reading[ob] - np.polynomial.polynomial.polyval(np.hypot(*(lm - poses[step, :2]).T), poly)
+            m = m.with_(reading_sigma=float(max(1.4826 * np.median(np.abs(res)), 1e-6)))
+        return Start(poses, m, (p_hyp, k_hyp), loc.log_evidence if loc is not None else float("nan"),
+                     len(starts) / max(n_win, 1), float(poly[1]) if mode != "bearing" else float("nan"))
 
     if p_hyp != 1.0:
         return start_from(poly0, place(poly0)[0])
@@ -453,20 +551,26 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
 # --------------------------------------------------------------------------- the fit
 
 def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1) -> Model:
-    """The paper's start for continuous commands: zero velocity for every command, a flat sensor line."""
+    """The paper's start for continuous commands: zero velocity for every command, a flat sensor line.
+
+    Either channel may be missing from the whole log (range-only or bearing-only sensors); the
+    model then records which channels it has (``Model.channels``).
+    """
     if log.controls is None or log.control_names != ("v", "w"):
         raise LogError("commands.csv: the continuous-command model needs columns 'v,w' "
                        f"(this log has {','.join(log.control_names) or 'action'})")
-    both = int(np.sum(~np.isnan(log.obs_reading) & ~np.isnan(log.obs_bearing)))
-    if both < MIN_SIGHTINGS or log.pose_times[-1] - log.pose_times[0] < INIT_WINDOW:
-        raise LogError(f"observations.csv: {both} sightings with reading and bearing over "
-                       f"{log.pose_times[-1] - log.pose_times[0]:.1f} s; calibrating continuous commands "
-                       f"needs at least {MIN_SIGHTINGS} and {INIT_WINDOW:g} s (action-table logs need an 'action' column)")
+    n_r, n_b = int(np.sum(~np.isnan(log.obs_reading))), int(np.sum(~np.isnan(log.obs_bearing)))
+    span = log.pose_times[-1] - log.pose_times[0]
+    if max(n_r, n_b) < MIN_SIGHTINGS or span < INIT_WINDOW:
+        raise LogError(f"observations.csv: {n_r} readings and {n_b} bearings over {span:.1f} s; calibrating "
+                       f"continuous commands needs at least {MIN_SIGHTINGS} of one kind and {INIT_WINDOW:g} s "
+                       f"(action-table logs need an 'action' column)")
     poly = np.zeros(sensor_degree + 1)
-    poly[0] = float(np.nanmedian(log.obs_reading))
+    poly[0] = float(np.nanmedian(log.obs_reading)) if n_r else 0.0
     return Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=poly,
                  reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
-                 motion_noise=np.array(PAPER_MOTION_NOISE), command=for_commands(log.controls, v_degree, w_degree))
+                 motion_noise=np.array(PAPER_MOTION_NOISE), command=for_commands(log.controls, v_degree, w_degree),
+                 channels=log.channels)
 
 
 def identity_model(log: Log, like: Model) -> Model:

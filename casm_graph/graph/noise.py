@@ -81,6 +81,9 @@ def group_scales(e: np.ndarray, groups: dict[str, np.ndarray], traces: dict[str,
     out = {}
     for name, rows in groups.items():
         r = e[rows]
+        if len(r) == 0:
+            out[name] = 1.0          # a channel the log does not measure keeps its level (it is unknown)
+            continue
         n, trace = (counts or {}).get(name, len(rows)), traces[name]
         rss = float(np.sum(r ** 2))
         if name in huber and len(r):

@@ -39,13 +39,14 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
     has_b = ~np.isnan(np.asarray(log.obs_bearing, float))
     n_obs, n_r, n_b = len(log.obs_t), int(has_r.sum()), int(has_b.sum())
 
-    # a channel missing altogether (range-only or bearing-only logs: not supported by the fit yet)
-    if n_r == 0:
-        raise LogError("observations.csv, column 'reading': every cell is empty (a bearing-only log); "
-                       "calibrating without the reading channel is not supported yet")
-    if n_b == 0:
-        raise LogError("observations.csv, column 'bearing': every cell is empty (a reading-only log); "
-                       "calibrating without the bearing channel is not supported yet")
+    # a channel missing altogether: range-only or bearing-only sensors (continuous commands only, so far)
+    if n_r == 0 and n_b == 0:
+        raise LogError("observations.csv: no sighting has a reading or a bearing")
+    one = "reading" if n_b == 0 else "bearing" if n_r == 0 else None
+    if one is not None and log.action is not None:
+        other = "bearing" if one == "reading" else "reading"
+        raise LogError(f"observations.csv, column '{other}': every cell is empty (a {one}-only log); action-table "
+                       f"logs need both channels so far (continuous 'v,w' command logs can do with one)")
 
     # too short for the model asked
     if log.steps < MIN_STEPS:
@@ -57,19 +58,21 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
         raise LogError(f"observations.csv: only {n_obs} sighting(s) in the whole log; calibrating needs at least "
                        f"{MIN_SIGHTINGS}")
     need_r = _min_readings(sensor_degree)
-    if n_r < need_r:
+    if one == "bearing":
+        need_r = 0           # no sensor curve to fit: the model records the reading channel as absent
+    if 0 < n_r < need_r or (one is None and n_r < need_r):
         raise LogError(f"observations.csv, column 'reading': only {n_r} sighting(s) with a reading; a degree-"
                        f"{sensor_degree} sensor polynomial needs at least {need_r}")
-    if n_b < MIN_BEARINGS:
+    if n_b < MIN_BEARINGS and one != "reading":
         raise LogError(f"observations.csv, column 'bearing': only {n_b} sighting(s) with a bearing; calibrating "
                        f"needs at least {MIN_BEARINGS}")
     readings = np.unique(np.asarray(log.obs_reading, float)[has_r])
-    if len(readings) < sensor_degree + 1:
+    if n_r and len(readings) < sensor_degree + 1:
         raise LogError(f"observations.csv, column 'reading': only {len(readings)} distinct value(s) "
                        f"({', '.join(f'{r:g}' for r in readings[:5])}); a degree-{sensor_degree} sensor polynomial "
                        f"needs at least {sensor_degree + 1} (a constant reading carries no distance)")
     bearings = np.unique(np.asarray(log.obs_bearing, float)[has_b])
-    if len(bearings) < 2:
+    if n_b and len(bearings) < 2:
         raise LogError(f"observations.csv, column 'bearing': every bearing is {bearings[0]:g} rad; a constant "
                        f"bearing carries no information about the heading (the fit is not identifiable)")
     if log.action is not None:
@@ -79,6 +82,7 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
         n_motion = 5                        # the command map's default degrees: v 2, w 1
         what = "5 command-map coefficients"
     unknowns = n_motion + sensor_degree + 1 + NOISE_LEVELS + START_POSE
+    unknowns -= (sensor_degree + 2) * (n_r == 0) + (n_b == 0)
     if n_r + n_b < unknowns:
         raise LogError(f"observations.csv: {n_r} readings and {n_b} bearings cannot determine {unknowns} unknowns "
                        f"({what}, {sensor_degree + 1} sensor coefficients, {NOISE_LEVELS} noise levels, the "
@@ -97,16 +101,19 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
                            f"{length[s]} step(s) (rows {r0}-{r1}); calibrating needs every run of one action to "
                            f"last at least {MIN_RUN_STEPS} command steps (shorter runs are not supported yet)")
 
-    # all sighted landmarks at one place: the sensor curve cannot be told from the scale
+    # all sighted landmarks at one place: the sensor curve cannot be told from the scale (with bearings
+    # only, the robot's distance from them is not seen at all)
+    what = "reading" if n_r else "bearing"
     lm_ids = np.asarray(log.landmark_ids)
     order = np.argsort(lm_ids)
-    rows = order[np.searchsorted(lm_ids[order], np.asarray(log.obs_landmark)[has_r])]
+    rows = order[np.searchsorted(lm_ids[order], np.asarray(log.obs_landmark)[has_r if n_r else has_b])]
     xy = np.asarray(log.landmark_xy, float)[np.unique(rows)]
     spread = float(np.max(np.ptp(xy, axis=0))) if len(xy) else 0.0
     if spread < MIN_SPREAD:
         where = f"({xy[0, 0]:g}, {xy[0, 1]:g})"
-        which = (f"the only landmark sighted with a reading (id {lm_ids[rows[0]]}) stands at {where}"
-                 if len(xy) == 1 else f"all {len(xy)} landmarks sighted with a reading stand at {where} "
+        which = (f"the only landmark sighted with a {what} (id {lm_ids[rows[0]]}) stands at {where}"
+                 if len(xy) == 1 else f"all {len(xy)} landmarks sighted with a {what} stand at {where} "
                                       f"(within {100 * MIN_SPREAD:g} cm)")
-        raise LogError(f"landmarks.csv, columns 'x','y': {which}; with no second place to measure from, the "
-                       f"sensor polynomial cannot be identified (coincident landmarks)")
+        lost = "the sensor polynomial" if n_r else "the robot's distance from it"
+        raise LogError(f"landmarks.csv, columns 'x','y': {which}; with no second place to measure from, "
+                       f"{lost} cannot be identified (coincident landmarks)")

@@ -80,6 +80,13 @@ class Log:
         """Sorted distinct action ids that were run."""
         return _frozen(np.unique(self.action) if self.action is not None else np.array([], int))
 
+    @cached_property
+    def channels(self) -> tuple[str, ...]:
+        """The sensor channels this log measures at all: ('reading', 'bearing'), or one of them
+        (a range-only or bearing-only sensor leaves the other column empty everywhere)."""
+        return tuple(name for name, col in (("reading", self.obs_reading), ("bearing", self.obs_bearing))
+                     if np.any(~np.isnan(col)))
+
     @property
     def minutes(self) -> float:
         return float(self.pose_times[-1] - self.pose_times[0]) / 60.0

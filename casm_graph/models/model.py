@@ -18,6 +18,7 @@ SCHEMA = "casm-graph/model/1"
 PAPER_START_READING_SIGMA = 10.0
 PAPER_START_BEARING_SIGMA = 0.2
 PAPER_MOTION_NOISE = (0.010, 0.010, 0.1)
+CHANNELS = ("reading", "bearing")
 
 
 @dataclass
@@ -37,6 +38,21 @@ class Model:
     effects: dict = field(default_factory=dict)
     fit: dict = field(default_factory=dict)
     command: object | None = None           # command_model.CommandModel for continuous commands
+    channels: tuple[str, ...] = CHANNELS    # sensor channels the model was fitted on (the others are unknown)
+
+    def has(self, channel: str) -> bool:
+        """Whether the model knows the sensor ``channel`` ('reading' or 'bearing')."""
+        return channel in self.channels
+
+    def noise_text(self, channel: str, spec: str = ".4g") -> str:
+        """The channel's noise level formatted with ``spec``, or 'not measured' (a one-channel sensor)."""
+        if not self.has(channel):
+            return "not measured"
+        return format(self.reading_sigma if channel == "reading" else self.bearing_sigma, spec)
+
+    def curve_text(self, spec: str = ".5g") -> str:
+        """The sensor polynomial's coefficients, or 'not measured' on a bearing-only model."""
+        return ", ".join(format(c, spec) for c in self.reading_poly) if self.has("reading") else "not measured"
 
     def reading(self, d) -> np.ndarray:
         return np.polynomial.polynomial.polyval(np.asarray(d, float), self.reading_poly)
@@ -69,13 +85,15 @@ class Model:
         """model.json's content, strict: every NaN or infinity is null (JSON has neither)."""
         ids = [str(int(a)) for a in self.action_ids]
         std = self.velocity_std if self.velocity_std is not None else np.full_like(self.velocities, np.nan)
-        sensor = {"reading_poly": self.reading_poly.tolist(),
-                  "reading_sigma": float(self.reading_sigma),
-                  "bearing_sigma": float(self.bearing_sigma),
+        reading = self.has("reading")
+        sensor = {"channels": list(self.channels),
+                  "reading_poly": self.reading_poly.tolist() if reading else None,
+                  "reading_sigma": float(self.reading_sigma) if reading else None,
+                  "bearing_sigma": float(self.bearing_sigma) if self.has("bearing") else None,
                   "distance_range": [float(x) for x in self.distance_range]}
-        if self.reading_poly_std is not None:
+        if self.reading_poly_std is not None and reading:
             sensor["reading_poly_std"] = self.reading_poly_std.tolist()
-        if self.reading_poly_cov is not None:
+        if self.reading_poly_cov is not None and reading:
             sensor["reading_poly_cov"] = np.asarray(self.reading_poly_cov).tolist()
             sensor["reading_band"] = self.reading_band()
         action_model = ({"kind": "table",
@@ -300,16 +318,24 @@ def _from_json(cls, data, w: _Where) -> Model:
     else:
         w.fail("action_model.kind", f"{_one_line(repr(kind))[:60]} is not supported here (known: 'table', "
                                     f"'command_poly')")
-    poly = w.vec(sm.get("reading_poly"), "sensor_model.reading_poly", max_len=MAX_POLY)
+    channels = sm.get("channels", list(CHANNELS))
+    if (not isinstance(channels, list) or not channels or len(set(channels)) != len(channels)
+            or not all(isinstance(c, str) and c in CHANNELS for c in channels)):
+        w.fail("sensor_model.channels", f"must be a list of {' and/or '.join(map(repr, CHANNELS))} "
+                                        f"(got {_one_line(repr(channels))[:60]})")
+    channels = tuple(c for c in CHANNELS if c in channels)
+    reading = "reading" in channels
+    poly = (w.vec(sm.get("reading_poly"), "sensor_model.reading_poly", max_len=MAX_POLY) if reading
+            else np.zeros(2))      # a bearing-only model has no curve: a placeholder no one reads
     D = len(poly)
     dr = w.vec(sm["distance_range"], "sensor_model.distance_range", n=2, nonneg=True) \
         if sm.get("distance_range") is not None else np.zeros(2)
     if dr[1] < dr[0]:
         w.fail("sensor_model.distance_range", f"must be [dmin, dmax] with dmin <= dmax (got {dr.tolist()})")
     poly_std = poly_cov = None
-    if sm.get("reading_poly_std") is not None:
+    if sm.get("reading_poly_std") is not None and reading:
         poly_std = w.vec(sm["reading_poly_std"], "sensor_model.reading_poly_std", n=D, nullable=True, nonneg=True)
-    if sm.get("reading_poly_cov") is not None:
+    if sm.get("reading_poly_cov") is not None and reading:
         rows = sm["reading_poly_cov"]
         if not isinstance(rows, list) or len(rows) != D:
             w.fail("sensor_model.reading_poly_cov", f"must be a {D} x {D} matrix (one row per coefficient)")
@@ -325,8 +351,11 @@ def _from_json(cls, data, w: _Where) -> Model:
     fit = w.obj(data.get("fit", {}), "fit")
     w.plain(fit, "fit")
     return cls(action_ids=ids, velocities=vel, reading_poly=poly,
-               reading_sigma=w.num(sm.get("reading_sigma"), "sensor_model.reading_sigma", positive=True),
-               bearing_sigma=w.num(sm.get("bearing_sigma"), "sensor_model.bearing_sigma", positive=True),
+               reading_sigma=(w.num(sm.get("reading_sigma"), "sensor_model.reading_sigma", positive=True)
+                              if reading else PAPER_START_READING_SIGMA),
+               bearing_sigma=(w.num(sm.get("bearing_sigma"), "sensor_model.bearing_sigma", positive=True)
+                              if "bearing" in channels else PAPER_START_BEARING_SIGMA),
+               channels=channels,
                motion_noise=motion, distance_range=(float(dr[0]), float(dr[1])), velocity_std=vstd,
                reading_poly_std=poly_std, reading_poly_cov=poly_cov, effects=effects, fit=fit, command=command)
 

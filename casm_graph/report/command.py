@@ -96,9 +96,9 @@ def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None, 
              ("sightings set aside", f.get("outliers_set_aside")),
              ("speed map v(c)", ", ".join(f"{x:.4g}" for x in cm.v_coef) + f" (powers of c/{cm.scale[0]:.3g})"),
              ("turn map w(c)", ", ".join(f"{x:.4g}" for x in cm.w_coef) + f" (powers of c/{cm.scale[1]:.3g})"),
-             ("reading sigma", f"{m.reading_sigma:.4g}"), ("bearing sigma (rad)", f"{m.bearing_sigma:.4g}"),
+             ("reading sigma", m.noise_text("reading")), ("bearing sigma (rad)", m.noise_text("bearing")),
              ("motion noise per step", ", ".join(f"{x:.4g}" for x in m.motion_noise)),
-             ("sensor polynomial", ", ".join(f"{c:.5g}" for c in m.reading_poly))]
+             ("sensor polynomial", m.curve_text())]
     ref, others = None, None
     if evaluation is not None:
         ref = evaluation["_vicon_model"]

@@ -185,9 +185,9 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
              ("seconds", f.get("seconds")), ("converged", f.get("converged")),
              ("log-likelihood", f"{f.get('log_likelihood', float('nan')):.1f}"),
              ("steps", log.steps), ("observations", len(log.obs_t)),
-             ("reading sigma", f"{m.reading_sigma:.4g}"), ("bearing sigma (rad)", f"{m.bearing_sigma:.4g}"),
+             ("reading sigma", m.noise_text("reading")), ("bearing sigma (rad)", m.noise_text("bearing")),
              ("motion noise per step", ", ".join(f"{x:.4g}" for x in m.motion_noise)),
-             ("sensor polynomial", ", ".join(f"{c:.5g}" for c in m.reading_poly)),
+             ("sensor polynomial", m.curve_text()),
              ("distance range (m)", f"{m.distance_range[0]:.2f} to {m.distance_range[1]:.2f}")]
     if truth is not None:
         sm = truth.get("sensor_model", {})

@@ -2,7 +2,8 @@
 
 A 5.4 m x 3.6 m field with four beacons, the 40-action set, a new action every 5 s chosen to stay
 on the field and even out counts, a head scanning side to side (one beacon at a time in view),
-30 frames/s, beacon height in pixels from a pinhole camera model, noisy bearings.
+30 frames/s, beacon height in pixels from a pinhole camera model, noisy bearings. ``sensor`` keeps
+only the reading ("range") or only the bearing ("bearing") of each sighting; the camera still has to see the beacon.
 """
 from __future__ import annotations
 
@@ -16,6 +17,19 @@ from casm_graph.io import log as logmod
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.aibo import BEACONS, FIELD, attempted_table
 from casm_graph.models.effects import get as get_effect
+
+SENSORS = {"both": ["reading", "bearing"], "range": ["reading"], "bearing": ["bearing"]}   # the cells a log fills
+
+
+def check_sensor(sensor) -> None:
+    """Reject a sensor mode other than range, bearing or both, in one line."""
+    if sensor not in SENSORS:
+        raise LogError(f"sensor must be one of {', '.join(SENSORS)} (got {sensor!r})")
+
+
+def channels(sensor: str) -> list[str]:
+    """The observation columns a log of this sensor mode measures."""
+    return list(SENSORS[sensor])
 
 
 @dataclass
@@ -54,6 +68,7 @@ class SimConfig:
     camera: Camera = field(default_factory=Camera)
     effects: dict[str, float] = field(default_factory=dict)
     extra_effects: tuple = ()                # user Effect classes (not registered) that ``effects`` may name
+    sensor: str = "both"                     # "range" (readings only), "bearing" (bearings only) or "both"
 
 
 def true_table(rng: np.random.Generator) -> np.ndarray:
@@ -109,6 +124,7 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
                            f"(--protocol floor) has it built in (rough regions)")
     if cfg.minutes <= 0:
         raise LogError(f"--minutes must be positive (got {cfg.minutes:g})")
+    check_sensor(cfg.sensor)
     rng = np.random.default_rng(cfg.seed)
     eff_rng = np.random.default_rng([cfg.seed, 7])              # a separate stream: effects leave the rest alone
     thetas = [e.simulate_params(float(cfg.effects[e.name]), eff_rng) for e in effects]
@@ -184,6 +200,10 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     for e, theta in sensor:
         obs = e.corrupt(theta, obs, eff_rng)
     which, reading, obs_bearing = obs["landmark"], obs["reading"], obs["bearing"]
+    if cfg.sensor == "range":
+        obs_bearing = np.full(len(obs_bearing), np.nan)
+    elif cfg.sensor == "bearing":
+        reading = np.full(len(reading), np.nan)
 
     poses[:, 2] = wrap(poses[:, 2])
     att = attempted_table()
@@ -202,6 +222,8 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
         "motion_noise": list(cfg.motion_noise),
         "sensor_model": {
             "kind": "camera",
+            "sensor": cfg.sensor,
+            "channels": channels(cfg.sensor),
             "camera": asdict(cam),
             "reading_sigma": cfg.reading_sigma,
             "bearing_sigma": cfg.bearing_sigma,

@@ -3,7 +3,8 @@
 Differential drive, each step a translation r then a rotation theta (Milstein & Wang):
 r ~ N(r_cmd, k_r |r_cmd|), theta ~ N(theta_cmd, k_t |theta_cmd| + k_d |r_cmd|) (variances), with
 (k_r, k_t, k_d) taken from the region of a grid the robot is in. Commands (v, w) steer it between
-random waypoints; range and bearing to known landmarks in front of it, sometimes.
+random waypoints; range and bearing to known landmarks in front of it, sometimes. A range-only
+sensor (``sensor="range"``, radio or UWB like) sees landmarks all around it, within ``max_range``.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.effects.regional_motion_noise import region_of
+from casm_graph.sim.aibo import channels, check_sensor
 
 SMOOTH = (0.002, 0.01, 0.002)         # k_r (m), k_t (rad), k_d (rad^2/m): a hard floor
 ROUGH_FACTOR = 10.0                   # variance factor of the rough regions (carpet, gravel)
@@ -40,6 +42,11 @@ class FloorConfig:
     margin: float = 0.8                       # waypoints this far inside the walls
     lag: float = 0.0                          # s: the velocity follows the command through a first-order lag
     lens_k: float = 0.0                       # the range reads (1 + lens_k bearing^2) times the distance
+    sensor: str = "both"                      # "range", "bearing" or "both": which cells the log fills
+    range_scale: float = 1.0                  # reading = range_offset + range_scale * d + noise (time of flight)
+    range_offset: float = 0.0                 # m
+    nlos_fraction: float = 0.0                # this fraction of readings is not line of sight: ...
+    nlos_scale: float = 1.0                   # ... an extra exponential error of this mean (m), always positive
     region_k: list = field(default_factory=list)   # filled by ``region_params``
 
 
@@ -64,10 +71,24 @@ def landmarks(cfg: FloorConfig, rng: np.random.Generator) -> np.ndarray:
     return xy
 
 
-def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
-    """Drive between random waypoints; return the log (with truth) and the truth as a JSON-ready dict."""
+def check(cfg: FloorConfig) -> None:
+    """Reject settings the floor simulator cannot run with, in one line."""
     if cfg.minutes <= 0:
         raise LogError(f"--minutes must be positive (got {cfg.minutes:g})")
+    check_sensor(cfg.sensor)
+    if not isinstance(cfg.n_landmarks, (int, np.integer)) or isinstance(cfg.n_landmarks, bool) or cfg.n_landmarks < 1:
+        raise LogError(f"floor simulator: n_landmarks must be a whole number of at least 1 (got {cfg.n_landmarks})")
+    if not cfg.range_scale > 0:
+        raise LogError(f"floor simulator: range_scale must be positive (got {cfg.range_scale:g})")
+    if not 0 <= cfg.nlos_fraction <= 1:
+        raise LogError(f"floor simulator: nlos_fraction must be between 0 and 1 (got {cfg.nlos_fraction:g})")
+    if not cfg.nlos_scale > 0:
+        raise LogError(f"floor simulator: nlos_scale must be positive (got {cfg.nlos_scale:g})")
+
+
+def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
+    """Drive between random waypoints; return the log (with truth) and the truth as a JSON-ready dict."""
+    check(cfg)
     rng = np.random.default_rng(cfg.seed)
     W, H = cfg.size
     K = region_params(cfg)
@@ -99,16 +120,26 @@ def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
         th = t_c + rng.normal() * np.sqrt(kt * abs(t_c) + kd * abs(r_c))
         poses[k + 1] = step(p, r, th)
     t = np.arange(steps + 1) * cfg.dt
+    all_around = cfg.sensor == "range"                # a range-only sensor sees landmarks all around it
     rows = []
     for k in range(1, steps + 1):                     # observations at each pose after a move
         rel = lm - poses[k, :2]
         d = np.hypot(rel[:, 0], rel[:, 1])
         b = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses[k, 2])
-        vis = np.flatnonzero((d < cfg.max_range) & (np.abs(b) < cfg.half_fov) & (rng.random(len(lm)) < cfg.detect_prob))
+        in_view = (d < cfg.max_range) & (all_around | (np.abs(b) < cfg.half_fov))
+        vis = np.flatnonzero(in_view & (rng.random(len(lm)) < cfg.detect_prob))
         for j in vis:
-            rows.append((t[k], j, d[j] * (1 + cfg.lens_k * b[j] ** 2) + rng.normal(0, cfg.range_sigma),
-                         wrap(b[j] + rng.normal(0, cfg.bearing_sigma))))
+            rows.append((t[k], j, cfg.range_offset + cfg.range_scale * d[j] * (1 + cfg.lens_k * b[j] ** 2)
+                         + rng.normal(0, cfg.range_sigma), wrap(b[j] + rng.normal(0, cfg.bearing_sigma))))
     obs = np.array(rows, float).reshape(-1, 4)
+    if cfg.nlos_fraction > 0:                         # a separate stream: the rest of the log stays as without NLOS
+        nlos_rng = np.random.default_rng([cfg.seed, 11])
+        hit = nlos_rng.random(len(obs)) < cfg.nlos_fraction
+        obs[:, 2] += np.where(hit, nlos_rng.exponential(cfg.nlos_scale, len(obs)), 0.0)
+    if cfg.sensor == "range":
+        obs[:, 3] = np.nan
+    elif cfg.sensor == "bearing":
+        obs[:, 2] = np.nan
     log = Log(landmark_ids=np.arange(len(lm)), landmark_xy=lm, t=t[:-1], action=None, controls=cmd,
               control_names=("v", "w"), obs_t=obs[:, 0], obs_landmark=obs[:, 1].astype(np.int64),
               obs_reading=obs[:, 2], obs_bearing=obs[:, 3], truth=np.column_stack([t, poses]))
@@ -120,8 +151,12 @@ def simulate(cfg: FloorConfig) -> tuple[Log, dict]:
         "motion_model": {"kind": "differential_drive_regions", "parameters": ["k_r", "k_t", "k_d"],
                          "size": list(cfg.size), "grid": list(cfg.grid), "region_k": K.tolist(),
                          "rough": list(cfg.rough)},
-        "sensor_model": {"kind": "range_bearing", "range_sigma": cfg.range_sigma,
-                         "bearing_sigma": cfg.bearing_sigma},
+        "sensor_model": {"kind": "range_bearing", "sensor": cfg.sensor, "channels": channels(cfg.sensor),
+                         "range_sigma": cfg.range_sigma, "bearing_sigma": cfg.bearing_sigma,
+                         "reading_poly": [cfg.range_offset, cfg.range_scale], "range_scale": cfg.range_scale,
+                         "range_offset": cfg.range_offset, "lens_k": cfg.lens_k, "nlos_fraction": cfg.nlos_fraction,
+                         "nlos_scale": cfg.nlos_scale, "max_range": cfg.max_range, "detect_prob": cfg.detect_prob,
+                         "half_fov": float(np.pi if all_around else cfg.half_fov), "n_landmarks": int(cfg.n_landmarks)},
         "simulation": c,
     }
     return log, truth
