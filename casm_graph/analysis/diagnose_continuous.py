@@ -68,6 +68,8 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     for name, raw, sigma, sel in (("reading", res["reading"], problem.reading_sigma, problem.r_sel),
                                   ("bearing", res["bearing_residual"], problem.bearing_sigma, problem.b_sel)):
         keep = sel & np.isfinite(raw)
+        if not keep.any():
+            continue                      # a channel this log does not measure (range-only, bearing-only)
         out[name] = Channel(name, raw[keep] / sigma, raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
     return out
 
@@ -89,8 +91,10 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
     struct = structures(rep)
     skipped = {n: ("added on request (calibrate --effect), not diagnosed" if n in CT.NOISE_EFFECTS else
                    "not available for continuous commands") for n in sorted(REGISTRY) if n not in CT.EFFECTS}
+    skipped.update({n: f"needs the {' and '.join(CT.missing_channels(n, log.channels))} channel(s), which this log "
+                       f"does not measure" for n in CT.EFFECTS if CT.missing_channels(n, log.channels)})
     cands = []
-    todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0]
+    todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped]
     if progress is not None and todo:
         progress.stage("candidates", len(todo), unit="effects")
     for name in todo:
@@ -104,7 +108,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
         if progress is not None:
             progress.step(1)
     cands.sort(key=lambda c: c.delta_bic)
-    v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS})
+    v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS if n not in skipped})
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")

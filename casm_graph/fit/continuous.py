@@ -717,12 +717,27 @@ PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
 PROFILE_ITERATIONS = 8
 
 
-def check_effects(names) -> None:
-    """LogError unless every name is an effect a continuous-command log can take."""
+NEEDS = {"lens_distortion": ("reading", "bearing")}   # the sensor channels an effect's physics needs (a lens: a
+                                                     # camera, which always sees the bearing and reads the size)
+
+
+def missing_channels(name: str, channels) -> tuple[str, ...]:
+    """The channels effect ``name`` needs that a log measuring ``channels`` lacks (empty: it applies)."""
+    return tuple(c for c in NEEDS.get(name, ()) if c not in channels)
+
+
+def check_effects(names, channels=("reading", "bearing")) -> None:
+    """LogError unless every name is an effect a continuous-command log measuring ``channels`` can take."""
+    names = list(names)
     other = sorted(set(names) - set(EFFECTS) - set(NOISE_EFFECTS))
     if other:
         raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
                        f"{', '.join(EFFECTS + NOISE_EFFECTS[:-1])} and {NOISE_EFFECTS[-1]} are available")
+    for n in names:
+        lack = missing_channels(n, channels)
+        if lack:
+            raise LogError(f"--effect {n}: needs the {' and '.join(lack)} channel(s), which this log does not "
+                           f"measure (observations.csv has only {', '.join(channels)})")
 
 
 def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Model) -> Model:
@@ -824,8 +839,9 @@ def profile(log: Log, fit: Fit, name: str) -> Profile:
 
 def _group_sums(problem: Problem, st: State) -> dict:
     ae, _, re, _, be, _, _ = problem.rows(st)
-    return {"forward": ae[:, 0] ** 2, "lateral": ae[:, 1] ** 2, "turn": ae[:, 2] ** 2,
+    sums = {"forward": ae[:, 0] ** 2, "lateral": ae[:, 1] ** 2, "turn": ae[:, 2] ** 2,
             "reading": re ** 2, "bearing": be ** 2}
+    return {k: v for k, v in sums.items() if len(v)}     # a channel the log does not measure has no rows
 
 
 def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
@@ -833,8 +849,8 @@ def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
     g = {k: float(np.sqrt(np.mean(v))) for k, v in _group_sums(problem, st).items()}
     m = np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]]
     m[1] = min(m[1], m[0])      # as in estimate_noise: lateral noise no larger than forward
-    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g["reading"],
-                       bearing_sigma=model.bearing_sigma * g["bearing"])
+    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g.get("reading", 1.0),
+                       bearing_sigma=model.bearing_sigma * g.get("bearing", 1.0))
 
 
 def _concentrated_log_likelihood(problem: Problem, st: State) -> float:

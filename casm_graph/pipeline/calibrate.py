@@ -120,7 +120,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         if options.method != "graph":
             raise LogError(f"--method {options.method}: continuous commands (commands.csv 'v,w') are calibrated "
                            f"by the graph method only")
-        continuous.check_effects(cls.name for cls in classes)
+        continuous.check_effects((cls.name for cls in classes), log.channels)
         grid = parse_regions(options.regions, log)
         start = continuous.start_model(log, options.sensor_degree)
         if classes:

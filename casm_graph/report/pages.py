@@ -272,7 +272,7 @@ def field_heatmap(diag):
 def group_panels(diag):
     """Mean residual per landmark (sensor channels) and per action (motion channels), with 2-SE bars."""
     fig, axes = subplots(1, 2, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1, 3]})
-    for k, ch in enumerate(("reading", "bearing")):
+    for k, ch in enumerate(c for c in ("reading", "bearing") if c in diag.residuals):
         d = diag.residuals[ch]
         lm = d.covariates["landmark"]
         ids = np.unique(lm)

@@ -1,0 +1,118 @@
+"""Issue 22: range-only and bearing-only logs calibrate, diagnose and report; Plaza 1 (real) from the log alone.
+
+Accuracy is checked against the simulator's truth and the data set's ground truth; the tolerances are the
+issue's (Plaza: trajectory under 1.0 m RMS, range slope over 20-40 m within 2 % of the 1.069 that a line
+fitted to range against true distance gives).
+"""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import casm_graph as cg
+from casm_graph.cli import main
+from casm_graph.io import plaza
+from casm_graph.io.log import wrap
+from casm_graph.models.model import Model
+
+PLAZA = plaza.find_plaza()
+TRUE_PLAZA_SLOPE = 1.069          # the data set's README: range = 0.03 + 1.069 d against the ground truth
+
+
+def trajectory_rms(cal, log) -> tuple[float, float]:
+    """Position (m) and heading (rad) RMS of the calibrated trajectory against the log's truth."""
+    tr, t = cal.trajectory, log.truth
+    pos = np.sqrt(np.mean((tr["x"] - t[:, 1]) ** 2 + (tr["y"] - t[:, 2]) ** 2))
+    return float(pos), float(np.sqrt(np.mean(wrap(tr["theta"] - t[:, 3]) ** 2)))
+
+
+def speed_gain(cal, log) -> float:
+    """Median learned forward speed over the commanded one (the floor's truth is velocity = command)."""
+    v = cal.model.command.velocities(log.controls, log.dt)[:, 0]
+    moving = np.abs(log.controls[:, 0]) > 0.1
+    return float(np.median(v[moving] / log.controls[moving, 0]))
+
+
+@pytest.fixture(scope="module")
+def floors():
+    """One six-minute floor log per sensor mode, the same seed (so the same trajectory)."""
+    return {mode: cg.simulate("floor", minutes=6, seed=1, sensor=mode)[0] for mode in ("range", "bearing")}
+
+
+@pytest.fixture(scope="module")
+def fits(floors):
+    return {mode: cg.calibrate(log) for mode, log in floors.items()}
+
+
+def test_range_only_log_learns_motion_and_curve(floors, fits):
+    log, cal = floors["range"], fits["range"]
+    pos, head = trajectory_rms(cal, log)
+    assert pos < 0.2 and head < 0.15, (pos, head)
+    assert abs(speed_gain(cal, log) - 1.0) < 0.05
+    m = cal.model
+    slope = (m.reading(4.0) - m.reading(1.0)) / 3.0           # the floor's range reads the distance
+    assert abs(slope - 1.0) < 0.02, slope
+    assert abs(m.reading_sigma - 0.05) < 0.015                  # the simulator's range sigma
+    assert m.channels == ("reading",)
+    sm = m.to_json()["sensor_model"]
+    assert sm["channels"] == ["reading"] and sm["bearing_sigma"] is None and sm["reading_sigma"] > 0
+    assert np.isfinite(cal.fit.log_likelihood)
+
+
+def test_bearing_only_log_learns_motion_and_records_no_curve(floors, fits, tmp_path):
+    log, cal = floors["bearing"], fits["bearing"]
+    pos, head = trajectory_rms(cal, log)
+    assert pos < 0.2 and head < 0.1, (pos, head)
+    assert abs(speed_gain(cal, log) - 1.0) < 0.05
+    assert abs(cal.model.bearing_sigma - 0.02) < 0.006
+    cal.save(tmp_path / "run")
+    data = json.loads((tmp_path / "run" / "model.json").read_text())
+    sm = data["sensor_model"]
+    assert sm["channels"] == ["bearing"] and sm["reading_poly"] is None and sm["reading_sigma"] is None
+    back = Model.load(tmp_path / "run" / "model.json")
+    assert back.channels == ("bearing",) and back.bearing_sigma == pytest.approx(cal.model.bearing_sigma)
+    assert "not measured" in cal.summary()
+
+
+def test_diagnosis_of_a_range_only_log_skips_what_needs_a_camera(floors, fits, tmp_path):
+    diag = cg.diagnose(floors["range"], fits["range"])
+    assert "lens_distortion" in diag.skipped and "bearing" in diag.skipped["lens_distortion"]
+    assert {c.effect for c in diag.candidates} == {"actuator_lag"}
+    assert "bearing" not in diag.residuals and "reading" in diag.residuals
+    diag.save(tmp_path / "diag")
+    assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
+    assert json.loads((tmp_path / "diag" / "diagnosis.json").read_text())["verdict"] == "none"
+
+
+def test_lens_distortion_asked_of_a_range_only_log_is_one_line(floors, tmp_path, capsys):
+    d = tmp_path / "log"
+    cg.write_log(floors["range"], d)
+    code = main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "lens_distortion", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "needs the bearing channel" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_mixed_log_with_no_sighting_measuring_both(floors):
+    """Readings on some sightings, bearings on the others: the fit uses both channels."""
+    rng = np.random.default_rng(0)
+    both = cg.simulate("floor", minutes=6, seed=1)[0]
+    half = rng.random(len(both.obs_t)) < 0.5
+    log = replace(both, obs_reading=np.where(half, both.obs_reading, np.nan),
+                  obs_bearing=np.where(half, np.nan, both.obs_bearing))
+    cal = cg.calibrate(log)
+    pos, _ = trajectory_rms(cal, log)
+    assert pos < 0.2 and cal.model.channels == ("reading", "bearing")
+    assert abs(speed_gain(cal, log) - 1.0) < 0.05
+
+
+@pytest.mark.skipif(PLAZA is None, reason="no Plaza1.mat (set CASM_PLAZA or put it in shared/data/plaza1)")
+def test_plaza_part_from_the_log_alone():
+    """The first eight minutes of CMU Plaza 1: trajectory and range curve against the ground truth."""
+    log = plaza.load_plaza(PLAZA, minutes=8)
+    cal = cg.calibrate(log)
+    pos, _ = trajectory_rms(cal, log)
+    assert pos < 1.0, pos
+    slope = (cal.model.reading(40.0) - cal.model.reading(20.0)) / 20.0
+    assert abs(slope / TRUE_PLAZA_SLOPE - 1.0) < 0.02, slope
