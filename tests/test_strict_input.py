@@ -16,6 +16,7 @@ import pytest
 from casm_graph import cli
 from casm_graph.io.log import LogError, load
 from casm_graph.models.model import Model, paper_start
+from casm_graph.pipeline.hidden_effect import model_error
 from casm_graph.sim.aibo import SimConfig, simulate, write
 
 
@@ -243,7 +244,7 @@ def coincident(d):
 CRASHES = [
     ("three_commands", short(3), ["commands.csv", "only 3 command step", "too short"]),
     ("one_step_action", one_step_action, ["commands.csv", "row 10", "column 'action'", "action 999",
-                                          "only 1 step", "not supported yet"]),
+                                          "only 1 step", "at least 15 command steps"]),
     ("every_reading_empty", empty_column("reading"), ["observations.csv", "column 'reading'",
                                                       "a bearing-only log", "action-table logs need both channels"]),
     ("every_bearing_empty", empty_column("bearing"), ["observations.csv", "column 'bearing'",
@@ -269,6 +270,23 @@ def test_accepted_logs_the_fit_cannot_take(bundle, tmp_path, capsys, case, fn, w
     code, err = run_cli(capsys, "calibrate", d, "--out", out, "--quiet", "--sensor-degree", 6)
     assert_one_line(code, err, *words)       # refused before any computation, not a crash or a NaN model
     assert not out.exists()
+
+
+def test_short_runs_of_an_action_that_also_runs_long_are_calibrated(bundle, tmp_path, capsys):
+    """A 3-step run (and a 1-step one) of actions that run for seconds elsewhere: the start takes them in stride."""
+    d = tmp_path / "log"
+    shutil.copytree(bundle, d)
+    table = rows(d / "commands.csv")
+    table[200][1] = table[201][1] = table[202][1] = table[900][1]
+    table[600][1] = table[1200][1]
+    put(d / "commands.csv", table)
+    out = tmp_path / "run"
+    code, err = run_cli(capsys, "calibrate", d, "--out", out, "--quiet")
+    assert code == 0, err
+    data = json.loads((out / "model.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in model.json"))
+    truth = json.loads((bundle / "truth_model.json").read_text())
+    err = model_error(Model.load(out / "model.json"), truth)
+    assert data["fit"]["converged"] and err["vx"] < 0.05 and err["vy"] < 0.05, err
 
 
 def test_a_short_log_that_is_enough_gives_a_finite_model(bundle, tmp_path, capsys):

@@ -47,6 +47,7 @@ MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is nume
                              # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
 INIT_KNOT_DT = 0.5
 INIT_WINDOW = 5.0
+BEARING_SPREAD = 0.05       # rad: the angular miss a triangulated window start is scored in
 RANGE_WINDOW = 20.0          # s: with ranges only a window's heading shows through its motion alone (Plaza 1: 5 s
                              # windows, about 5 m against 0.5 m range errors, started headings a radian off)
 SLOPE_FACTORS = np.geomspace(0.75, 1.33, 15)   # range-line slopes tried, relative to the sensor hypothesis's
@@ -147,10 +148,22 @@ class Problem:
         self.p_sigma = PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
 
     def rows(self, st: State):
+        """Whitened rows: motion (ae, aJ), readings and bearings Huber-weighted (re, rJ, be, bJ), priors pe."""
         P = st.poses
         e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
         w = 1.0 / self.motion_sigma
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
+        re, rJ, be, bJ = self.sightings(st)
+        w = robust.huber(re)
+        re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
+        w = robust.huber(be)
+        be, bJ = be * w, bJ * w[:, None]
+        pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
+        return ae, aJ, re, rJ, be, bJ, pe
+
+    def sightings(self, st: State):
+        """Whitened reading and bearing residuals and their Jacobians, before the Huber weights."""
+        P = st.poses
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
         if self.lens_k:          # reading = f(d) (1 + k ia^2), the image angle ia = bearing (fixed camera)
             ia, Jia = factors.bearing.error(P[self.r_knot], self.r_lm, np.zeros(len(self.r_z)))
@@ -159,18 +172,16 @@ class Problem:
             J = [sc[:, :, None] * J[0] + (2 * self.lens_k * f * ia)[:, :, None] * Jia[0], sc[:, :, None] * J[1]]
             e = sc * f - self.r_z[:, None]
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
-        w = robust.huber(re)
-        re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
-        w = robust.huber(be)
-        be, bJ = be * w, bJ * w[:, None]
-        pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
-        return ae, aJ, re, rJ, be, bJ, pe
+        return re, rJ, be, bJ
 
     def cost(self, st: State) -> float:
-        ae, _, re, _, be, _, pe = self.rows(st)
-        return 0.5 * float(np.sum(ae ** 2) + np.sum(re ** 2) + np.sum(be ** 2) + np.sum(pe ** 2))
+        """Half the squared motion and prior rows plus the sightings' Huber loss (what each IRLS step lowers)."""
+        ae, _, _, _, _, _, pe = self.rows(st)
+        re, _, be, _ = self.sightings(st)
+        return (0.5 * float(np.sum(ae ** 2) + np.sum(pe ** 2))
+                + float(np.sum(robust.huber_loss(re)) + np.sum(robust.huber_loss(be))))
 
     def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
         ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
@@ -410,14 +421,14 @@ def window_pose_ranges(fix_lm: np.ndarray, dist: np.ndarray, rel: np.ndarray, he
     return np.array([p[i, 0], p[i, 1], headings[i]]), float(cost[i])
 
 
-def window_pose_bearings(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarray, headings: np.ndarray,
-                         spread: float):
-    """Start pose of one window from bearings alone: the rays to the landmarks intersected.
+def bearing_fits(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarray, headings: np.ndarray,
+                 spread: float = BEARING_SPREAD) -> tuple[np.ndarray, np.ndarray]:
+    """Window start positions (H, 2) and their costs (H,) for every candidate start heading, from bearings alone.
 
-    For each candidate start heading theta0, sighting i's ray leaves the robot's position
-    p0 + R(theta0) (dx, dy) at the angle theta0 + dtheta + bearing and must pass through its landmark:
-    linear least squares in p0 on the rays' normals; the heading whose rays meet best (perpendicular
-    misses in ``spread`` units, capped, and landmarks behind the robot penalised) wins.
+    For each start heading theta0, sighting i's ray leaves the robot's position p0 + R(theta0) (dx, dy)
+    at the angle theta0 + dtheta + bearing and must pass through its landmark: least squares in p0 on
+    the rays' normals, weighted by the inverse distance (a bearing error moves a far ray further); the
+    cost sums the angular misses in ``spread`` (rad) units, capped, and penalises landmarks behind the robot.
     """
     th = headings[:, None] + rel[None, :, 2] + bearing[None, :]
     nx, ny = -np.sin(th), np.cos(th)
@@ -425,16 +436,60 @@ def window_pose_bearings(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarra
     qx = fix_lm[None, :, 0] - (c0 * rel[None, :, 0] - s0 * rel[None, :, 1])
     qy = fix_lm[None, :, 1] - (s0 * rel[None, :, 0] + c0 * rel[None, :, 1])
     rhs = nx * qx + ny * qy
-    a11, a12, a22 = (nx * nx).sum(1) + 1e-9, (nx * ny).sum(1), (ny * ny).sum(1) + 1e-9
-    b1, b2 = (nx * rhs).sum(1), (ny * rhs).sum(1)
-    det = a11 * a22 - a12 ** 2
-    px, py = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
-    ex, ey = qx - px[:, None], qy - py[:, None]
-    miss = nx * ex + ny * ey
-    ahead = np.cos(th) * ex + np.sin(th) * ey
-    cost = (np.minimum(miss ** 2 / spread ** 2, 9.0) + np.where(ahead > 0, 0.0, 9.0)).sum(axis=1)
+    wgt = np.ones_like(rhs)
+    for _ in range(2):
+        a11, a12, a22 = (wgt * nx * nx).sum(1) + 1e-9, (wgt * nx * ny).sum(1), (wgt * ny * ny).sum(1) + 1e-9
+        b1, b2 = (wgt * nx * rhs).sum(1), (wgt * ny * rhs).sum(1)
+        det = a11 * a22 - a12 ** 2
+        px, py = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+        ex, ey = qx - px[:, None], qy - py[:, None]
+        wgt = 1.0 / np.maximum(ex ** 2 + ey ** 2, 0.05)
+    miss = wrap(np.arctan2(ey, ex) - th)
+    cost = np.minimum(miss ** 2 / spread ** 2, 9.0).sum(axis=1)
+    return np.column_stack([px, py]), cost
+
+
+def window_pose_bearings(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarray, headings: np.ndarray,
+                         spread: float = BEARING_SPREAD):
+    """Start pose of one window from bearings alone: the heading of :func:`bearing_fits` whose rays meet best."""
+    p, cost = bearing_fits(fix_lm, bearing, rel, headings, spread)
     i = int(np.argmin(cost))
-    return np.array([px[i], py[i], headings[i]]), float(cost[i])
+    return np.array([p[i, 0], p[i, 1], headings[i]]), float(cost[i])
+
+
+def chain_headings(costs: list[np.ndarray], positions: list[np.ndarray], moves: np.ndarray, headings: np.ndarray,
+                   spread: float, cap: float = 25.0) -> np.ndarray:
+    """The likeliest sequence of window start headings (index per window), by dynamic programming.
+
+    Window k costs ``costs[k]`` at each heading and starts at ``positions[k]`` there; ``moves[k]`` is the
+    dead-reckoned (dx, dy, dtheta) from window k's start to window k+1's, in window k's frame. Moving
+    from heading i to heading j costs the squared misfit of position and heading against that move
+    (its tolerance grows with the move's length and turn), capped at ``cap`` so that a stretch where dead
+    reckoning fails (a slip, a rough floor) does not force a wrong chain. Each window alone cannot tell
+    a heading when it sees two landmarks from nearly one place; its neighbours can.
+    """
+    c, s = np.cos(headings), np.sin(headings)
+    total = costs[0].copy()
+    back = []
+    for k in range(len(costs) - 1):
+        dx, dy, dth = moves[k]
+        step = np.hypot(dx, dy)
+        sp, sth = spread + 0.1 * step, 0.05 + 0.1 * abs(dth) + 0.02 * step
+        px = positions[k][:, 0] + c * dx - s * dy          # where heading i puts window k+1's start
+        py = positions[k][:, 1] + s * dx + c * dy
+        dpos = ((positions[k + 1][None, :, 0] - px[:, None]) ** 2
+                + (positions[k + 1][None, :, 1] - py[:, None]) ** 2) / sp ** 2
+        dang = wrap(headings[None, :] - headings[:, None] - dth) ** 2 / sth ** 2
+        trans = np.minimum(dpos + dang, cap)
+        acc = total[:, None] + trans
+        arg = np.argmin(acc, axis=0)
+        back.append(arg)
+        total = acc[arg, np.arange(len(headings))] + costs[k + 1]
+    path = np.empty(len(costs), int)
+    path[-1] = int(np.argmin(total))
+    for k in range(len(costs) - 2, -1, -1):
+        path[k] = back[k][path[k + 1]]
+    return path
 
 
 def grid_cell(log: Log, finest: float = 0.1, cells: int = 150) -> float:
@@ -503,8 +558,29 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
         spread = max(0.15, 0.01 * extent)
     t_knot = t0 + knot_dt * np.arange(n_knots)
 
+    def place_bearings():
+        fits = {}
+        for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
+            if len(sel) >= 3 and len(np.unique(lm[sel], axis=0)) >= 2:
+                fits[w] = bearing_fits(lm[sel], log.obs_bearing[ob[sel]], rel[step[sel] - a], headings)
+        if not fits:
+            return {}, 0.0
+        ws = sorted(fits)
+        track = dead_reckon(log.controls, dt, out, np.zeros(3))
+        a = np.array([spans[w][0] for w in ws])
+        d = track[a[1:], :2] - track[a[:-1], :2]
+        th = track[a[:-1], 2]
+        moves = np.column_stack([np.cos(th) * d[:, 0] + np.sin(th) * d[:, 1],
+                                 -np.sin(th) * d[:, 0] + np.cos(th) * d[:, 1],
+                                 wrap(track[a[1:], 2] - th)])
+        path = chain_headings([fits[w][1] for w in ws], [fits[w][0] for w in ws], moves, headings, spread)
+        starts = {w: np.array([*fits[w][0][h], headings[h]]) for w, h in zip(ws, path)}
+        return starts, float(sum(fits[w][1][h] for w, h in zip(ws, path)))
+
     def place(poly):
-        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob]) if mode != "bearing" else None
+        if mode == "bearing":
+            return place_bearings()
+        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob])
         starts, total = {}, 0.0
         for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
             if len(sel) < 3:
@@ -512,10 +588,6 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
             r = rel[step[sel] - a]
             if mode == "both":
                 starts[w], c = window_pose(lm[sel], dist[sel], log.obs_bearing[ob[sel]], r, headings)
-            elif mode == "bearing":
-                if len(np.unique(lm[sel], axis=0)) < 2:
-                    continue
-                starts[w], c = window_pose_bearings(lm[sel], log.obs_bearing[ob[sel]], r, headings, spread)
             else:
                 # the heading shows only through motion: the window must move a few range errors
                 if np.hypot(*rel[:, :2].T).max() < 3 * spread or len(np.unique(lm[sel], axis=0)) < 2:

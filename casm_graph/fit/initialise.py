@@ -163,10 +163,7 @@ def _headings(seg_of_knot, seg_act, t_knot, obs_knot, dirs, bearing, w_max=3.0):
     seg_obs = seg_of_knot[obs_knot]
     # seg_of_knot is non-decreasing: each segment's knots (and, sorted stably, its sightings) are one slice
     first = np.searchsorted(seg_of_knot, np.arange(n_seg))
-    if np.any(np.bincount(seg_of_knot, minlength=n_seg)[:n_seg] == 0):
-        t0 = np.array([t_knot[seg_of_knot == s].min() for s in range(n_seg)])   # (raises: a segment with no knot)
-    else:
-        t0 = t_knot[first]
+    t0 = t_knot[np.minimum(first, len(t_knot) - 1)]   # a run too short to hold a knot has no sighting either
     tt = t_knot[obs_knot] - t0[seg_obs]
     by_seg = np.argsort(seg_obs, kind="stable")
     cut = np.searchsorted(seg_obs[by_seg], np.arange(n_seg + 1))

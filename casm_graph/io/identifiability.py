@@ -16,7 +16,7 @@ from casm_graph.io.log import Log, LogError
 MIN_SIGHTINGS = 10          # sightings in the whole log
 MIN_BEARINGS = 10           # sightings with a bearing
 MIN_STEPS = 15              # command steps: the start places the robot on knots 5 steps apart, scores on 15
-MIN_RUN_STEPS = 5           # steps of one run of one action: every run needs a knot of the start
+MIN_RUN_STEPS = 15          # steps of an action's longest run: the start needs three of its knots (5 steps apart)
 MIN_SPREAD = 0.01           # m: sighted landmarks closer together than this stand at one place
 NOISE_LEVELS = 5            # reading sigma, bearing sigma, motion noise (3)
 START_POSE = 3
@@ -88,18 +88,20 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
                        f"({what}, {sensor_degree + 1} sensor coefficients, {NOISE_LEVELS} noise levels, the "
                        f"start pose); the log is too short for this model")
 
-    # runs of one action too short for the start's knots
+    # an action whose runs are all too short for the start to fit its velocity
     if log.action is not None:
         a = np.asarray(log.action)
         start = np.concatenate([[0], np.flatnonzero(np.diff(a) != 0) + 1])
         length = np.diff(np.append(start, len(a)))
-        short = np.flatnonzero(length < MIN_RUN_STEPS)
-        if len(short):
-            s = short[0]
-            r0, r1 = start[s] + 1, start[s] + length[s]
-            raise LogError(f"commands.csv, row {r0}, column 'action': action {a[start[s]]} runs for only "
-                           f"{length[s]} step(s) (rows {r0}-{r1}); calibrating needs every run of one action to "
-                           f"last at least {MIN_RUN_STEPS} command steps (shorter runs are not supported yet)")
+        for act in np.unique(a):
+            mine = np.flatnonzero(a[start] == act)
+            best = mine[np.argmax(length[mine])]
+            if length[best] < MIN_RUN_STEPS:
+                r0, r1 = start[best] + 1, start[best] + length[best]
+                raise LogError(f"commands.csv, row {r0}, column 'action': action {act} runs for only {length[best]} "
+                               f"step(s) at most (rows {r0}-{r1}); the start fits each action's velocity on a run "
+                               f"of at least {MIN_RUN_STEPS} command steps (three of its knots), so every action "
+                               f"needs one such run (shorter runs of it elsewhere are fine)")
 
     # all sighted landmarks at one place: the sensor curve cannot be told from the scale (with bearings
     # only, the robot's distance from them is not seen at all)
