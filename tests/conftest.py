@@ -16,7 +16,8 @@ FULL = os.environ.get("CASM_FULL") == "1"
 # (it rewrites ``item._nodeid``, which pytest 9 no longer reads): both workers built the cross-check's
 # 700-second fixture. Every other test is its own unit, as with --dist load.
 ONE_WORKER = {f"tests/{m}.py" for m in ("test_crosscheck", "test_diagnose", "test_effects", "test_em_parts",
-                                         "test_mrclam", "test_uncertainty")}
+                                         "test_mrclam", "test_uncertainty", "test_uncertainty_continuous",
+                                         "test_one_channel")}
 
 
 def pytest_xdist_make_scheduler(config, log):

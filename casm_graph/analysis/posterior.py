@@ -15,6 +15,10 @@ value for effect parameters. Priors (stated in posterior.json, overridable with 
 * ``range_dependent_noise.growth``: uniform on [0, 5] per metre; ``false_detections.fraction``:
   uniform on [0, 0.5].
 
+The likelihood is either of :mod:`casm_graph.analysis.marginal_likelihood` (action table or
+continuous commands): the sampler sees only its noise levels, so a sensor channel the log does not
+measure has no sigma here and no prior.
+
 Run length follows emcee's integrated autocorrelation time tau: chunks of steps until the
 chain is at least ``TAU_FACTOR`` tau long with tau settled, burn-in is a few tau, samples are
 thinned to about tau/2. A chain stopped by ``max_steps`` first is flagged too short (warning).
@@ -30,7 +34,7 @@ import emcee
 import numpy as np
 from scipy.optimize import minimize
 
-from casm_graph.analysis.marginal_likelihood import MarginalLikelihood
+from casm_graph.analysis.marginal_likelihood import NoiseLikelihood
 from casm_graph.io.log import LogError
 
 TAU_FACTOR = 50            # emcee's advice: a chain of at least 50 tau
@@ -91,7 +95,7 @@ def parse_prior(spec: str) -> tuple[str, Prior]:
     return name.strip(), Prior(parts[0], a, b)
 
 
-def default_priors(ml: MarginalLikelihood) -> dict[str, Prior]:
+def default_priors(ml: NoiseLikelihood) -> dict[str, Prior]:
     out = {}
     for p in ml.params:
         if p.kind != "effect":
@@ -103,7 +107,7 @@ def default_priors(ml: MarginalLikelihood) -> dict[str, Prior]:
     return out
 
 
-def priors_for(ml: MarginalLikelihood, overrides: dict[str, Prior] | None = None) -> dict[str, Prior]:
+def priors_for(ml: NoiseLikelihood, overrides: dict[str, Prior] | None = None) -> dict[str, Prior]:
     pri = default_priors(ml)
     for name, pr in (overrides or {}).items():
         if name not in pri:
@@ -115,7 +119,7 @@ def priors_for(ml: MarginalLikelihood, overrides: dict[str, Prior] | None = None
 class LogPosterior:
     """log p(u | O) up to a constant, in the sampler's coordinates; counts and times its evaluations."""
 
-    def __init__(self, ml: MarginalLikelihood, priors: dict[str, Prior]):
+    def __init__(self, ml: NoiseLikelihood, priors: dict[str, Prior]):
         self.ml, self.priors = ml, [priors[n] for n in ml.names]
         self.log_coord = np.array([p.kind != "effect" for p in ml.params])
         self.evaluations, self.seconds, self.cpu_seconds = 0, 0.0, 0.0
@@ -182,7 +186,7 @@ class Chain:
     notes: list = field(default_factory=list)
 
 
-def run(ml: MarginalLikelihood, priors: dict[str, Prior], walkers: int | None = None, max_steps: int = 5000,
+def run(ml: NoiseLikelihood, priors: dict[str, Prior], walkers: int | None = None, max_steps: int = 5000,
         min_steps: int = 300, seed: int = 0, tau_factor: float = TAU_FACTOR, progress=None, pool=None) -> Chain:
     """Sample the noise levels; the run length is set by the autocorrelation time (module docstring).
 

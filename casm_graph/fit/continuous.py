@@ -59,6 +59,7 @@ COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
 COARSE_HELD_ROUNDS = 3       # coarse rounds with the maps held first: freed on the initialiser's poses, MRCLAM robot 4
                              # (fewest sightings) ran to a speed map 131 % off (log-likelihood 22,036; 42,665 this way)
 FULL_KNOT_DT, FULL_ROUNDS, FULL_ITERATIONS = 0.25, 2, 15
+FULL_SETTLE, NOISE_TOL = 6, 0.02   # more full rounds, at most, until no noise level moves by 2 %
 REGIONAL_ROUNDS, REGIONAL_TOL = 40, 0.02      # EM rounds of regional_motion_noise's k's on the fine graph; stop when
                                               # none moves by 2 % (slow where sightings say little about single steps)
 
@@ -147,17 +148,19 @@ class Problem:
         self.p_mean = nominal.params
         self.p_sigma = PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
 
-    def rows(self, st: State):
-        """Whitened rows: motion (ae, aJ), readings and bearings Huber-weighted (re, rJ, be, bJ), priors pe."""
+    def rows(self, st: State, robust_weights: bool = True):
+        """Whitened rows: motion (ae, aJ), readings and bearings (re, rJ, be, bJ; Huber-weighted unless
+        ``robust_weights`` is false), priors pe."""
         P = st.poses
         e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
         w = 1.0 / self.motion_sigma
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         re, rJ, be, bJ = self.sightings(st)
-        w = robust.huber(re)
-        re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
-        w = robust.huber(be)
-        be, bJ = be * w, bJ * w[:, None]
+        if robust_weights:
+            w = robust.huber(re)
+            re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
+            w = robust.huber(be)
+            be, bJ = be * w, bJ * w[:, None]
         pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
         return ae, aJ, re, rJ, be, bJ, pe
 
@@ -220,9 +223,9 @@ class Problem:
         keys = [X(i) for i in range(self.lay.n_poses)]
         return gtsam.Ordering(keys if poses_only else keys + [M(0), C(0)])
 
-    def jacobian(self, st: State, poses_only: bool = False):
-        """Whitened sparse Jacobian, residual and the row groups of each noise channel."""
-        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
+    def jacobian(self, st: State, poses_only: bool = False, robust_weights: bool = True):
+        """Whitened sparse Jacobian, residual and the row groups of each noise channel (see :meth:`rows`)."""
+        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st, robust_weights)
         K, Pn, D = self.lay.n_poses, self.n_params, self.n_poly
         n_act, n_r, n_b = 3 * (K - 1), len(re), len(be)
         rows, cols, vals = [], [], []
@@ -370,14 +373,14 @@ def _inverse(poly: np.ndarray, lo: float, hi: float):
     return lambda z: np.interp(z, r[order], d[order])
 
 
-def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: np.ndarray,
-                headings: np.ndarray, spread: float = 0.15):
-    """Start pose of one window from its sightings, searching the start heading on a grid.
+def range_bearing_fits(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: np.ndarray,
+                       headings: np.ndarray, spread: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
+    """Window start positions (H, 2) and their costs (H,) for every candidate start heading, from range and bearing.
 
     Sighting i, taken after the robot moved ``rel[i]`` = (dx, dy, dtheta) in the window-start frame,
-    places the window start at landmark - dist * u(theta0 + dtheta + bearing) - R(theta0) (dx, dy)
-    for every candidate theta0; the heading whose placements agree best (robust spread) wins.
-    Returns (x0, y0, theta0) and the winning cost (summed capped squared spread in ``spread`` units).
+    places the window start at landmark - dist * u(theta0 + dtheta + bearing) - R(theta0) (dx, dy);
+    each heading's position is the median placement, its cost the placements' spread (summed capped
+    squares in ``spread`` units).
     """
     th = headings[:, None] + rel[None, :, 2] + bearing[None, :]
     c0, s0 = np.cos(headings)[:, None], np.sin(headings)[:, None]
@@ -385,8 +388,16 @@ def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: 
     y = fix_lm[None, :, 1] - dist * np.sin(th) - (s0 * rel[None, :, 0] + c0 * rel[None, :, 1])
     mx, my = np.median(x, axis=1, keepdims=True), np.median(y, axis=1, keepdims=True)
     cost = np.minimum(((x - mx) ** 2 + (y - my) ** 2) / spread ** 2, 9.0).sum(axis=1)
+    return np.column_stack([mx[:, 0], my[:, 0]]), cost
+
+
+def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: np.ndarray,
+                headings: np.ndarray, spread: float = 0.15):
+    """Start pose of one window from its sightings: the heading of :func:`range_bearing_fits` that agrees best.
+    Returns (x0, y0, theta0) and the winning cost."""
+    p, cost = range_bearing_fits(fix_lm, dist, bearing, rel, headings, spread)
     i = int(np.argmin(cost))
-    return np.array([mx[i, 0], my[i, 0], headings[i]]), float(cost[i])
+    return np.array([p[i, 0], p[i, 1], headings[i]]), float(cost[i])
 
 
 def window_pose_ranges(fix_lm: np.ndarray, dist: np.ndarray, rel: np.ndarray, headings: np.ndarray,
@@ -558,44 +569,46 @@ def initialise(log: Log, model: Model, knot_dt: float = INIT_KNOT_DT, window: fl
         spread = max(0.15, 0.01 * extent)
     t_knot = t0 + knot_dt * np.arange(n_knots)
 
-    def place_bearings():
-        fits = {}
-        for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
-            if len(sel) >= 3 and len(np.unique(lm[sel], axis=0)) >= 2:
-                fits[w] = bearing_fits(lm[sel], log.obs_bearing[ob[sel]], rel[step[sel] - a], headings)
+    track = dead_reckon(log.controls, dt, out, np.zeros(3))
+
+    def chained(fits: dict, tolerance: float):
+        """Window starts from per-heading fits, the headings chained across windows (:func:`chain_headings`)."""
         if not fits:
             return {}, 0.0
         ws = sorted(fits)
-        track = dead_reckon(log.controls, dt, out, np.zeros(3))
         a = np.array([spans[w][0] for w in ws])
         d = track[a[1:], :2] - track[a[:-1], :2]
         th = track[a[:-1], 2]
         moves = np.column_stack([np.cos(th) * d[:, 0] + np.sin(th) * d[:, 1],
                                  -np.sin(th) * d[:, 0] + np.cos(th) * d[:, 1],
                                  wrap(track[a[1:], 2] - th)])
-        path = chain_headings([fits[w][1] for w in ws], [fits[w][0] for w in ws], moves, headings, spread)
+        path = chain_headings([fits[w][1] for w in ws], [fits[w][0] for w in ws], moves, headings, tolerance)
         starts = {w: np.array([*fits[w][0][h], headings[h]]) for w, h in zip(ws, path)}
         return starts, float(sum(fits[w][1][h] for w, h in zip(ws, path)))
 
     def place(poly):
-        if mode == "bearing":
-            return place_bearings()
-        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob])
+        fits = {}
+        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob]) if mode != "bearing" else None
         starts, total = {}, 0.0
         for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
             if len(sel) < 3:
                 continue
             r = rel[step[sel] - a]
             if mode == "both":
-                starts[w], c = window_pose(lm[sel], dist[sel], log.obs_bearing[ob[sel]], r, headings)
+                fits[w] = range_bearing_fits(lm[sel], dist[sel], log.obs_bearing[ob[sel]], r, headings)
+            elif mode == "bearing":
+                if len(np.unique(lm[sel], axis=0)) >= 2:
+                    fits[w] = bearing_fits(lm[sel], log.obs_bearing[ob[sel]], r, headings)
             else:
                 # the heading shows only through motion: the window must move a few range errors
                 if np.hypot(*rel[:, :2].T).max() < 3 * spread or len(np.unique(lm[sel], axis=0)) < 2:
                     continue
                 guess = loc.mean[min(int(np.searchsorted(t_knot, tp[a])), n_knots - 1)]
                 starts[w], c = window_pose_ranges(lm[sel], dist[sel], r, headings, guess, spread)
-            total += c
-        return starts, total
+                total += c
+        if mode == "range":
+            return starts, total
+        return chained(fits, 0.15 if mode == "both" else spread)
 
     def start_from(poly, starts):
         m = out.with_(reading_poly=poly)
@@ -653,14 +666,25 @@ def identity_model(log: Log, like: Model) -> Model:
     return like.with_(command=cm, reading_poly=poly, effects={})
 
 
+def noise_levels(model: Model) -> np.ndarray:
+    """Every noise level of a model, for telling whether the noise step has settled."""
+    return np.concatenate([[model.reading_sigma, model.bearing_sigma], np.asarray(model.motion_noise, float)])
+
+
 def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, rounds: int, iterations: int,
                     seed: int, label: str, trace: list, stages: list, progress: Progress,
-                    freeze: bool = False, last_noise: bool = True):
-    """Rounds of LM, each followed by gating of outliers and re-estimating the noise levels."""
+                    freeze: bool = False, last_noise: bool = True, settle: int = 0):
+    """Rounds of LM, each followed by gating of outliers and re-estimating the noise levels.
+
+    With ``settle`` > 0, up to that many more rounds run until no noise level moves by more than
+    ``NOISE_TOL`` (the noise step is a fixed-point iteration, slow where the sightings' leverage is
+    high: a floor log's bearing sigma stood at 1.5 x its truth after two rounds, at the truth after five).
+    """
     use = None
     its, h = 0, None
     problem = st = None
-    for r in range(rounds):
+    r = 0
+    while r < rounds:
         problem = Problem(log, lay, model, use, poses)
 
         def tick(c):
@@ -674,9 +698,14 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
         poses = st.poses
         model = with_state(model, st)
         if r < rounds - 1 or last_noise:
+            before = noise_levels(model)
             model = estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)
             use = gate(log, poses[lay.obs_knot], model)
+            moved = float(np.max(np.abs(np.log(noise_levels(model) / before))))
+            if settle > 0 and r == rounds - 2 and moved > NOISE_TOL:
+                rounds, settle = rounds + 1, settle - 1
         progress.step(1)
+        r += 1
     return model, poses, problem, st, its, bool(h.converged)
 
 
@@ -740,7 +769,7 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     progress.stage("full graph", FULL_ROUNDS)
     model, kp, problem, st, its, converged = optimise_rounds(
         log, full, model, poses[full.knots], FULL_ROUNDS, FULL_ITERATIONS, seed + 100, "full", trace, stages,
-        progress, last_noise=False)
+        progress, last_noise=False, settle=FULL_SETTLE)
     it2 += its
     poses = fill_in(log, model, full.knots, kp)
     pose_std = np.full_like(poses, np.nan)

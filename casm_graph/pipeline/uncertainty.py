@@ -2,9 +2,11 @@
 
 UNC gets posterior.json (INTERFACE section 5, plus the priors, the likelihood's cost and the
 Laplace results), model.json (the input model at the posterior median noise levels, with the
-table and polynomial at their posterior mean and std, the Laplace marginals averaged over the
-noise posterior, the polynomial's covariance and the sensor curve's 90 % band), corner.png,
-trace.png and report.html.
+table (or, for continuous commands, the command map) and polynomial at their posterior mean and
+std, the Laplace marginals averaged over the noise posterior, the polynomial's covariance and the
+sensor curve's 90 % band where the log measures readings), corner.png, trace.png and report.html.
+Action-table logs use the segment-eliminated table likelihood, continuous-command logs (``v,w``,
+either sensor channel or both) the command-map graph's (:mod:`casm_graph.analysis.marginal_likelihood`).
 """
 from __future__ import annotations
 
@@ -16,12 +18,20 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from casm_graph.analysis import posterior as P
-from casm_graph.analysis.marginal_likelihood import MarginalLikelihood, likelihood
+from casm_graph.analysis.marginal_likelihood import (
+    ContinuousMarginalLikelihood,
+    MarginalLikelihood,
+    NoiseLikelihood,
+    continuous_likelihood,
+    likelihood,
+)
+from casm_graph.fit import continuous
 from casm_graph.fit.calibration import Calibration, read_truth_model
 from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
 from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import atomic_dir, checked_out, json_text
+from casm_graph.models.effects.regional_motion_noise import RegionalMotionNoise
 from casm_graph.models.model import Model
 from casm_graph.pipeline.diagnose import _trajectory_csv, check_compatible
 from casm_graph.report import uncertainty as uncertainty_report
@@ -36,11 +46,11 @@ class Uncertainty:
 
     log: Log
     model: Model                # at the posterior median noise, with Laplace std
-    ml: MarginalLikelihood
+    ml: NoiseLikelihood
     chain: P.Chain
     intervals: dict              # each sampled quantity: median and ci90
     priors: dict
-    cov_theta: np.ndarray
+    cov_theta: np.ndarray        # table (or command map), polynomial and effect parameters, in the likelihood's order
     truth: dict | None
     seconds: float
     draws: int = DRAWS
@@ -73,27 +83,52 @@ class Uncertainty:
                         "thin": ch.thin, "samples": int(len(ch.samples)), "too_short": ch.too_short,
                         "notes": ch.notes},
             "likelihood": {"method": "laplace",
-                           "integrated_out": ["poses", "velocity table", "sensor polynomial",
-                                              "effect parameters (least squares)"],
+                           "integrated_out": list(self.ml.integrated_out),
                            "linearisation": "MAP at the model's noise levels",
                            "evaluations": ch.evaluations,
                            "seconds_per_evaluation": ch.seconds_per_evaluation,
                            "cpu_seconds_per_evaluation": ch.cpu_seconds_per_evaluation,
                            "steps": int(self.log.steps)},
-            "laplace": {"noise_draws": self.draws,
-                        "velocity_std": {str(int(a)): s.tolist() for a, s in
-                                         zip(self.model.action_ids, self.model.velocity_std)},
-                        "reading_poly_std": self.model.reading_poly_std.tolist(),
-                        "reading_band": self.model.reading_band()},
+            "laplace": self._laplace_json(),
             "seconds": round(self.seconds, 2),
         }
 
+    def _laplace_json(self) -> dict:
+        """The Laplace std of the table or command map, and of the sensor curve where the log measures readings."""
+        m = self.model
+        out = {"noise_draws": self.draws}
+        if m.command is None:
+            out["velocity_std"] = {str(int(a)): s.tolist() for a, s in zip(m.action_ids, m.velocity_std)}
+        else:
+            out["command_std"] = {"v": m.command.v_std.tolist(), "w": m.command.w_std.tolist()}
+        if m.has("reading"):
+            out.update(reading_poly_std=m.reading_poly_std.tolist(), reading_band=m.reading_band())
+        return out
 
-def prepare(log: Log, model: Model, poses: np.ndarray | None = None, source: str = "the model") -> tuple[Model, np.ndarray]:
-    """The model indexed like the log's actions, and a start trajectory (``poses``, else the EKF smoother's)."""
+
+def prepare(log: Log, model: Model, poses: np.ndarray | None = None,
+            source: str = "the model") -> tuple[Model, np.ndarray]:
+    """The model ready for ``log`` and a start trajectory (T+1, 3).
+
+    ``poses`` when given; else, for an action table, the EKF smoother's (the model indexed like the
+    log's actions), for continuous commands a fresh :func:`casm_graph.fit.continuous.fit` of the log.
+    """
+    if log.controls is not None:
+        if model.command is None:
+            raise LogError(f"{source} has no command map (action_model.kind 'command_poly') for the log's "
+                           f"continuous commands; calibrate this log first")
+        if log.control_names != ("v", "w"):
+            raise LogError(f"commands.csv: the command map needs columns 'v,w' (this log has "
+                           f"{','.join(log.control_names)})")
+        if RegionalMotionNoise.name in model.effects:
+            raise LogError(f"{source}: uncertainty samples one forward and one turn noise level, not "
+                           f"{RegionalMotionNoise.name}'s per-region ones; calibrate without that effect")
+        if poses is None:
+            poses = continuous.fit(log, model, marginals=False).poses
+        return model, poses
     if model.command is not None or log.action is None:
-        raise LogError(f"{source}: uncertainty needs a table action model and a log with an 'action' column "
-                       f"(continuous-command logs are not supported yet)")
+        raise LogError(f"{source}: uncertainty needs a table action model for a log with an 'action' column "
+                       f"(a command map for one with 'v,w' commands)")
     check_compatible(log, model, source)
     model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                         action_ids=log.action_ids, velocity_std=None)
@@ -102,45 +137,28 @@ def prepare(log: Log, model: Model, poses: np.ndarray | None = None, source: str
     return model, poses
 
 
-def mixed_marginals(ml: MarginalLikelihood, samples: np.ndarray, draws: int = DRAWS, seed: int = 0):
-    """Mean shift from the MAP and covariance of table, polynomial and effect parameters, noise integrated out.
+def mixed_marginals(ml: NoiseLikelihood, samples: np.ndarray, draws: int = DRAWS, seed: int = 0):
+    """Mean shift from the MAP and covariance of the integrated-out parameters, noise integrated out.
 
     The Laplace posterior of the parameters given the noise, N(MAP + shift(lambda), S(lambda)^-1),
     is averaged over ``draws`` posterior samples of the noise (law of total variance), so a noise
-    level the log cannot pin down widens the table's intervals as much as its posterior says.
+    level the log cannot pin down widens the table's (or command map's) intervals as much as its
+    posterior says.
     """
     rng = np.random.default_rng(seed)
     pick = samples[rng.choice(len(samples), size=min(draws, len(samples)), replace=False)]
     shifts, covs = [], []
     for x in pick:
-        _, _, _, S, gt = ml.reduce(x)
-        C = np.linalg.inv(S)
+        shift, C = ml.parameter_moments(x)
         covs.append(C)
-        shifts.append(-C @ gt)
+        shifts.append(shift)
     shifts = np.array(shifts)
     cov = np.mean(covs, axis=0) + (np.cov(shifts.T) if len(shifts) > 1 else 0.0)
     return shifts.mean(axis=0), cov
 
 
-def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (), walkers: int | None = None,
-            max_steps: int = 5000, seed: int = 0, truth: dict | None = None, progress=None,
-            draws: int = DRAWS, pool=None) -> Uncertainty:
-    """Sample the noise levels of ``model`` on ``log`` and the Laplace marginals at their posterior median
-    (``pool``: anything with ``map``, e.g. a Dask cluster's, to evaluate emcee's walkers on)."""
-    t0 = time.perf_counter()
-    overrides = dict(P.parse_prior(s) for s in priors)
-    if progress is not None:
-        progress.stage("MAP", None)
-    # small dense blocks only: BLAS threads would spin and triple the cost of every evaluation
-    with threadpool_limits(1):
-        ml = likelihood(log, model, poses)
-        pri = P.priors_for(ml, overrides)
-        ch = P.run(ml, pri, walkers=walkers, max_steps=max_steps, seed=seed, progress=progress, pool=pool)
-        summ = P.summary(ch)
-        if progress is not None:
-            progress.stage("marginals", None)
-        x_med = np.array([summ[n]["median"] for n in ml.names])
-        shift, cov = mixed_marginals(ml, ch.samples, draws=draws, seed=seed)
+def table_model(model: Model, ml: MarginalLikelihood, x_med: np.ndarray, shift: np.ndarray, cov: np.ndarray) -> Model:
+    """The action-table model at noise levels ``x_med``, table, polynomial and effects at their posterior mean."""
     pb, st = ml.problem, ml.state
     A, D = pb.A, pb.D
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -150,14 +168,60 @@ def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] =
     th[pb.ls_index] += shift[3 * A + D:]
     for e, s in zip(pb.effects, pb.slices):
         effects[e.name] = e.describe(th[s])
-    d = pb.predictions(st)["distance"][np.isfinite(log.obs_reading)]
-    new = model.with_(velocities=st.velocities + shift[:3 * A].reshape(-1, 3), velocity_std=sd[:3 * A].reshape(-1, 3),
-                      reading_poly=st.poly + shift[3 * A:3 * A + D], reading_poly_std=sd[3 * A:3 * A + D],
-                      reading_poly_cov=cov[3 * A:3 * A + D, 3 * A:3 * A + D], reading_sigma=sr, bearing_sigma=sb,
-                      motion_noise=mot, effects=effects,
-                      distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range,
-                      fit={**model.fit, "uncertainty": "noise levels: posterior median; table and polynomial: "
-                                                       "Laplace marginals averaged over the noise posterior"})
+    d = ml.reading_distances()
+    return model.with_(velocities=st.velocities + shift[:3 * A].reshape(-1, 3), velocity_std=sd[:3 * A].reshape(-1, 3),
+                       reading_poly=st.poly + shift[3 * A:3 * A + D], reading_poly_std=sd[3 * A:3 * A + D],
+                       reading_poly_cov=cov[3 * A:3 * A + D, 3 * A:3 * A + D], reading_sigma=sr, bearing_sigma=sb,
+                       motion_noise=mot, effects=effects,
+                       distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range,
+                       fit={**model.fit, "uncertainty": "noise levels: posterior median; table and polynomial: "
+                                                        "Laplace marginals averaged over the noise posterior"})
+
+
+def command_model(model: Model, ml: ContinuousMarginalLikelihood, x_med: np.ndarray, shift: np.ndarray,
+                  cov: np.ndarray) -> Model:
+    """The command-map model at noise levels ``x_med``, map and polynomial at their posterior mean with their
+    std (the polynomial's std and covariance only where the log measures readings)."""
+    st = ml.state
+    n = len(st.params)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sr, sb, mot = ml._split(x_med)
+    kw = {}
+    if model.has("reading"):
+        d = ml.reading_distances()
+        kw = dict(reading_poly=st.poly + shift[n:], reading_poly_std=sd[n:], reading_poly_cov=cov[n:, n:],
+                  distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range)
+    return model.with_(command=model.command.with_params(st.params + shift[:n], sd[:n]), reading_sigma=sr,
+                       bearing_sigma=sb, motion_noise=mot, **kw,
+                       fit={**model.fit, "uncertainty": "noise levels: posterior median; command map and "
+                                                        "polynomial: Laplace marginals averaged over the noise "
+                                                        "posterior"})
+
+
+def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (), walkers: int | None = None,
+            max_steps: int = 5000, seed: int = 0, truth: dict | None = None, progress=None,
+            draws: int = DRAWS, pool=None) -> Uncertainty:
+    """Sample the noise levels of ``model`` on ``log`` and the Laplace marginals at their posterior median
+    (``pool``: anything with ``map``, e.g. a Dask cluster's, to evaluate emcee's walkers on).
+
+    An action-table model takes the table likelihood, a command map (continuous commands) the
+    continuous one; ``poses`` (T+1, 3) is the start the MAP is found from."""
+    t0 = time.perf_counter()
+    overrides = dict(P.parse_prior(s) for s in priors)
+    if progress is not None:
+        progress.stage("MAP", None)
+    # small dense blocks only: BLAS threads would spin and triple the cost of every evaluation
+    with threadpool_limits(1):
+        ml = likelihood(log, model, poses) if model.command is None else continuous_likelihood(log, model, poses)
+        pri = P.priors_for(ml, overrides)
+        ch = P.run(ml, pri, walkers=walkers, max_steps=max_steps, seed=seed, progress=progress, pool=pool)
+        summ = P.summary(ch)
+        if progress is not None:
+            progress.stage("marginals", None)
+        x_med = np.array([summ[n]["median"] for n in ml.names])
+        shift, cov = mixed_marginals(ml, ch.samples, draws=draws, seed=seed)
+    new = (table_model(model, ml, x_med, shift, cov) if model.command is None
+           else command_model(model, ml, x_med, shift, cov))
     return Uncertainty(log, new, ml, ch, summ, pri, cov, truth, time.perf_counter() - t0, draws)
 
 

@@ -1,4 +1,9 @@
-"""UNC/report.html: what the log tells how well, what it cannot pin down, and what data to collect next."""
+"""UNC/report.html: what the log tells how well, what it cannot pin down, and what data to collect next.
+
+An action-table model gets its velocity table's std per action; a continuous-command model its
+command maps with their 90 % bands over the commands the log drove, and the commands it rarely
+drove. The sensor curve's band appears where the log measures readings.
+"""
 from __future__ import annotations
 
 import html
@@ -14,6 +19,8 @@ from casm_graph.sim.aibo import true_reading
 WEAK_FACTOR = 2.5         # an action whose std exceeds this many times the typical one is weakly observed
 PINNED_WIDTH = 0.5        # a noise level is pinned down when its 90 % interval spans less than +-50 %
 MIN_READINGS = 5          # a 0.1 m distance bin with fewer readings counts as not seen
+COMMAND_BINS = 10         # bins over each command's range ...
+RARE_FRACTION = 0.01      # ... one holding less than this share of the steps counts as rarely driven
 UNITS = {"reading_sigma": "reading units", "bearing_sigma": "rad", "motion_noise_forward": "m/step",
          "motion_noise_lateral": "m/step", "motion_noise_turn": "rad/step"}
 
@@ -24,7 +31,7 @@ def true_values(unc) -> dict:
     if t is None:
         return {}
     sm, mn = t.get("sensor_model", {}), t.get("motion_noise")
-    out = {"reading_sigma": sm.get("reading_sigma"), "bearing_sigma": sm.get("bearing_sigma")}
+    out = {"reading_sigma": sm.get("reading_sigma", sm.get("range_sigma")), "bearing_sigma": sm.get("bearing_sigma")}
     if mn is not None:
         out.update(motion_noise_forward=mn[0], motion_noise_lateral=mn[1], motion_noise_turn=mn[2])
     for name in unc.intervals:
@@ -37,7 +44,7 @@ def true_values(unc) -> dict:
 
 def true_table(unc) -> np.ndarray | None:
     t = unc.truth
-    if t is None:
+    if t is None or unc.model.command is not None:
         return None
     tab = t.get("action_model", {}).get("velocities", {})
     ids = [str(int(a)) for a in unc.model.action_ids]
@@ -57,8 +64,7 @@ def action_usage(unc) -> tuple[np.ndarray, np.ndarray]:
 
 def seen_distances(unc) -> np.ndarray:
     """Distance of every reading from the MAP trajectory."""
-    pr = unc.ml.problem.predictions(unc.ml.state)
-    return pr["distance"][np.isfinite(unc.log.obs_reading)]
+    return unc.ml.reading_distances()
 
 
 def visited_distances(unc) -> tuple[float, float]:
@@ -84,6 +90,72 @@ def unseen_ranges(unc, step: float = 0.1) -> list[tuple[float, float]]:
     return out
 
 
+def command_band(unc, which: int, points: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(commands, mapped velocity, its Laplace std) of the speed (``which`` 0) or turn (1) map over the log's
+    commands."""
+    cm = unc.model.command
+    c = unc.log.controls[:, which]
+    grid = np.linspace(c.min(), c.max(), points)
+    controls = np.zeros((points, 2))
+    controls[:, which] = grid
+    basis = cm.basis(controls)[which]
+    part = slice(0, cm.n_v) if which == 0 else slice(cm.n_v, cm.n_v + len(cm.w_coef))
+    C = unc.cov_theta[part, part]
+    return grid, basis @ cm.params[part], np.sqrt(np.clip(np.einsum("ni,ij,nj->n", basis, C, basis), 0, None))
+
+
+def rare_commands(unc, which: int) -> list[tuple[float, float]]:
+    """Command intervals (``COMMAND_BINS`` over the log's range) driven in fewer than ``RARE_FRACTION`` of the steps."""
+    c = unc.log.controls[:, which]
+    n, edges = np.histogram(c, COMMAND_BINS)
+    out = []
+    for a, b, k in zip(edges[:-1], edges[1:], n):
+        if k < RARE_FRACTION * len(c):
+            if out and abs(out[-1][1] - a) < 1e-12:
+                out[-1] = (out[-1][0], float(b))
+            else:
+                out.append((float(a), float(b)))
+    return out
+
+
+def _assess_table(unc, known, weak, advice) -> dict:
+    """The velocity table's typical std, and the weakly observed actions with the running time that would fix them."""
+    m = unc.model
+    runs, secs = action_usage(unc)
+    std = m.velocity_std
+    typical = np.median(std, axis=0)
+    ratio = np.max(std / typical, axis=1)
+    weak_act = np.flatnonzero((ratio > WEAK_FACTOR) | (runs <= 1))
+    known.append(f"velocity table: typical 90 % half-width vx {1645 * typical[0]:.1f} mm/s, "
+                 f"vy {1645 * typical[1]:.1f} mm/s, w {1.645 * typical[2]:.3f} rad/s "
+                 f"(median over {len(m.action_ids)} actions, {np.median(secs):.0f} s of data each)")
+    for i in weak_act:
+        a = int(m.action_ids[i])
+        weak.append(f"action {a}: {runs[i]} run(s), {secs[i]:.1f} s; std vx {1000 * std[i, 0]:.1f} mm/s, "
+                    f"vy {1000 * std[i, 1]:.1f} mm/s, w {std[i, 2]:.3f} rad/s ({ratio[i]:.1f} x typical)")
+        need = secs[i] * (ratio[i] ** 2 - 1)
+        advice.append(f"run action {a} for about {max(need, 5.0):.0f} s more (in runs of a few seconds) to bring "
+                      f"its std to the typical level")
+    return {"weak_actions": weak_act.tolist(), "runs": runs, "seconds": secs}
+
+
+def _assess_command(unc, known, weak, advice) -> dict:
+    """Each command map's 90 % band over the commands driven, and the commands the log rarely drove."""
+    rare = {}
+    for which, (name, unit, cmd) in enumerate((("speed map", "m/s", "v"), ("turn map", "rad/s", "w"))):
+        grid, _, s = command_band(unc, which)
+        known.append(f"{name}: 90 % half-width {1.645 * np.median(s):.3g} {unit} (median) to "
+                     f"{1.645 * np.max(s):.3g} {unit} (widest) over the commands {cmd} = {grid[0]:.3g} to "
+                     f"{grid[-1]:.3g} the log drove")
+        rare[cmd] = rare_commands(unc, which)
+        for a, b in rare[cmd]:
+            weak.append(f"{name} at {cmd} = {a:.3g} to {b:.3g}: driven in under {100 * RARE_FRACTION:.0f} % of the "
+                        f"steps, so the map there leans on its polynomial form")
+            advice.append(f"drive {cmd} = {a:.3g} to {b:.3g} for a while (a few per cent of the log) if the robot "
+                          f"will be commanded there")
+    return {"rare_commands": rare}
+
+
 def assess(unc) -> dict:
     """Known-how-well, cannot-pin-down and advice, as sentences and flags (the report prints them)."""
     known, weak, advice = [], [], []
@@ -106,33 +178,22 @@ def assess(unc) -> dict:
                         f"follows the prior ({pr.describe()})")
             flags[n] = "weak"
             if n.startswith("motion_noise"):
+                what = "velocity table" if unc.model.command is None else "command maps"
                 advice.append(f"{n}: a longer log (the interval narrows roughly as 1/sqrt(length)) or a more "
-                              f"precise sensor; until then the velocity table's std below already includes the "
+                              f"precise sensor; until then the {what}' std below already includes the "
                               f"spread this level leaves")
             else:
                 advice.append(f"{n}: more observations of this channel")
     m = unc.model
-    runs, secs = action_usage(unc)
-    std = m.velocity_std
-    typical = np.median(std, axis=0)
-    ratio = np.max(std / typical, axis=1)
-    weak_act = np.flatnonzero((ratio > WEAK_FACTOR) | (runs <= 1))
-    known.append(f"velocity table: typical 90 % half-width vx {1645 * typical[0]:.1f} mm/s, "
-                 f"vy {1645 * typical[1]:.1f} mm/s, w {1.645 * typical[2]:.3f} rad/s "
-                 f"(median over {len(m.action_ids)} actions, {np.median(secs):.0f} s of data each)")
-    for i in weak_act:
-        a = int(m.action_ids[i])
-        weak.append(f"action {a}: {runs[i]} run(s), {secs[i]:.1f} s; std vx {1000 * std[i, 0]:.1f} mm/s, "
-                    f"vy {1000 * std[i, 1]:.1f} mm/s, w {std[i, 2]:.3f} rad/s ({ratio[i]:.1f} x typical)")
-        need = secs[i] * (ratio[i] ** 2 - 1)
-        advice.append(f"run action {a} for about {max(need, 5.0):.0f} s more (in runs of a few seconds) to bring "
-                      f"its std to the typical level")
-    band_std = m.reading_std(np.linspace(*m.distance_range, 50))
-    known.append(f"sensor curve: 90 % band +-{1.645 * np.median(band_std):.3g} (median) to "
-                 f"+-{1.645 * np.max(band_std):.3g} (widest) over the distances seen, "
-                 f"{m.distance_range[0]:.2f} to {m.distance_range[1]:.2f} m")
-    gaps = unseen_ranges(unc)
-    vis = visited_distances(unc)
+    out = (_assess_table if m.command is None else _assess_command)(unc, known, weak, advice)
+    gaps, vis = [], (np.nan, np.nan)
+    if m.has("reading") and len(seen_distances(unc)):
+        band_std = m.reading_std(np.linspace(*m.distance_range, 50))
+        known.append(f"sensor curve: 90 % band +-{1.645 * np.median(band_std):.3g} (median) to "
+                     f"+-{1.645 * np.max(band_std):.3g} (widest) over the distances seen, "
+                     f"{m.distance_range[0]:.2f} to {m.distance_range[1]:.2f} m")
+        gaps = unseen_ranges(unc)
+        vis = visited_distances(unc)
     for a, b in gaps:
         mid = 0.5 * (a + b)
         s = float(m.reading_std(mid))
@@ -143,8 +204,7 @@ def assess(unc) -> dict:
         advice.append(f"sightings at {a:.1f} to {b:.1f} m ({where} any seen), if the sensor can detect "
                       f"landmarks there; otherwise do not use the curve outside {m.distance_range[0]:.2f} to "
                       f"{m.distance_range[1]:.2f} m")
-    return {"known": known, "weak": weak, "advice": advice, "flags": flags, "weak_actions": weak_act.tolist(),
-            "runs": runs, "seconds": secs, "gaps": gaps, "visited": vis}
+    return {"known": known, "weak": weak, "advice": advice, "flags": flags, "gaps": gaps, "visited": vis, **out}
 
 
 # ---------------------------------------------------------------------------------- figures
@@ -184,8 +244,11 @@ def sensor_band_figure(unc, verdict):
     ax.fill_between(d, mean - 1.645 * s, mean + 1.645 * s, color="C0", alpha=0.3, label="90 % band")
     ax.plot(d, mean, "C0", lw=1.5, label="learned curve")
     t = unc.truth
-    if t is not None and "camera" in t.get("sensor_model", {}):
+    sm = t.get("sensor_model", {}) if t is not None else {}
+    if "camera" in sm:
         ax.plot(d, true_reading(t, d), "C3--", lw=1.2, label="true")
+    elif "reading_poly" in sm:
+        ax.plot(d, np.polynomial.polynomial.polyval(d, sm["reading_poly"]), "C3--", lw=1.2, label="true")
     for a, b in verdict["gaps"]:
         ax.axvspan(a, b, color="0.85", zorder=0)
         axh.axvspan(a, b, color="0.85", zorder=0)
@@ -218,6 +281,38 @@ def velocity_std_figure(unc, verdict):
     axes[-1].set_xlabel("action (red: weakly observed; dashed: weak threshold)")
     fig.tight_layout()
     return fig
+
+
+def command_map_figure(unc, verdict):
+    """Speed and turn maps with their 90 % bands over the commands driven, the commands' histogram below."""
+    fig, axes = subplots(2, 2, figsize=(10, 5.5), sharex="col", gridspec_kw={"height_ratios": [3, 1]})
+    for which, (cmd, unit) in enumerate((("v", "m/s"), ("w", "rad/s"))):
+        ax, axh = axes[0, which], axes[1, which]
+        grid, mean, s = command_band(unc, which)
+        ax.fill_between(grid, mean - 1.645 * s, mean + 1.645 * s, color="C0", alpha=0.3, label="90 % band")
+        ax.plot(grid, mean, "C0", lw=1.5, label="learned map")
+        ax.plot(grid, grid, "k:", lw=0.8, label="velocity = command")
+        for a, b in verdict["rare_commands"][cmd]:
+            ax.axvspan(a, b, color="0.85", zorder=0)
+            axh.axvspan(a, b, color="0.85", zorder=0)
+        ax.set(ylabel=f"actual {'speed' if which == 0 else 'turn rate'} ({unit})",
+               title=f"{'Speed' if which == 0 else 'Turn'} map (grey: rarely driven)")
+        ax.legend(fontsize=8)
+        axh.hist(unc.log.controls[:, which], bins=40, color="0.4")
+        axh.set(xlabel=f"command {cmd} ({unit})", ylabel="steps")
+    fig.tight_layout()
+    return fig
+
+
+def _command_table(unc) -> str:
+    cm = unc.model.command
+    rows = []
+    for cmd, coef, std, scale in (("v", cm.v_coef, cm.v_std, cm.scale[0]), ("w", cm.w_coef, cm.w_std, cm.scale[1])):
+        for i, (c, sd) in enumerate(zip(coef, std)):
+            rows.append(f"<tr><td>{cmd}</td><td>({cmd} / {scale:.3g})^{i}</td>"
+                        f"<td>{c:+.4f} &plusmn; {1.645 * sd:.4f}</td></tr>")
+    return ("<table><tr><th>map</th><th>term</th><th>coefficient &plusmn; 90 %</th></tr>" + "".join(rows)
+            + "</table>")
 
 
 # ----------------------------------------------------------------------------------- report
@@ -271,6 +366,15 @@ def write(out: Path, unc) -> None:
     e = html.escape
     lst = lambda items: "<ul>" + "".join(f"<li>{e(x)}</li>" for x in items) + "</ul>"   # noqa: E731
     warn = "".join(f"<p class='bad'>{e(n)}</p>" for n in ch.notes)
+    sensor = (f"<h2>Sensor curve</h2>{png(sensor_band_figure(unc, verdict))}"
+              if np.isfinite(verdict["visited"][0]) else "")      # only where the log measures readings
+    if unc.model.command is None:
+        action = (f"<h2>Velocity table (Laplace marginals averaged over the noise posterior)</h2>"
+                  f"{png(velocity_std_figure(unc, verdict))}{_velocity_table(unc, verdict)}")
+    else:
+        action = (f"<h2>Command maps (Laplace marginals averaged over the noise posterior)</h2>"
+                  f"{png(command_map_figure(unc, verdict))}{_command_table(unc)}")
+    integrated = ", ".join(unc.ml.integrated_out)
     body = f"""<!doctype html><html><head><meta charset="utf-8"><title>casm-graph uncertainty</title>
 <style>{STYLE}</style></head><body>
 <h1>How well does this log pin the model down?</h1>{warn}
@@ -278,17 +382,16 @@ def write(out: Path, unc) -> None:
 <h2>What the log cannot pin down</h2>{lst(verdict['weak']) if verdict['weak'] else '<p>Nothing stands out.</p>'}
 <h2>What to collect next</h2>{lst(verdict['advice']) if verdict['advice'] else '<p>Nothing urgent.</p>'}
 <h2>Noise levels (emcee)</h2>
-<p>Sampled under their marginal likelihood with the poses, the velocity table, the sensor polynomial and the
-effects' least-squares parameters integrated out (Laplace approximation at the MAP, re-factored for every
-sample: {1000 * ch.seconds_per_evaluation:.1f} ms per evaluation, {1000 * ch.cpu_seconds_per_evaluation:.1f} ms of
-CPU, on {unc.log.steps} steps; {ch.evaluations} evaluations).
+<p>Sampled under their marginal likelihood with these integrated out: {e(integrated)} (Laplace
+approximation at the MAP, re-factored for every sample: {1000 * ch.seconds_per_evaluation:.1f} ms per
+evaluation, {1000 * ch.cpu_seconds_per_evaluation:.1f} ms of CPU, on {unc.log.steps} steps;
+{ch.evaluations} evaluations).
 {ch.walkers} walkers, {ch.steps} steps, burn-in {ch.burn_in}, thinned by {ch.thin}:
 {len(ch.samples)} samples; acceptance {ch.acceptance:.2f}.</p>
 {_table(unc)}
 <h3>Corner plot</h3>{png(cf)}
 <h3>Traces</h3>{png(tf)}
-<h2>Sensor curve</h2>{png(sensor_band_figure(unc, verdict))}
-<h2>Velocity table (Laplace marginals averaged over the noise posterior)</h2>{png(velocity_std_figure(unc, verdict))}
-{_velocity_table(unc, verdict)}
+{sensor}
+{action}
 <p style="color:#777">{unc.seconds:.1f} s</p></body></html>"""
     (out / "report.html").write_text(body)
