@@ -42,10 +42,9 @@ def main():
     base = effect_fit.fit(log, refit.model, refit.poses, [], **kw)
     cand, model, poses = diagnosis.fit_candidate(log, refit, base, a.effect)
     for n in a.iterations:
-        diagnosis.FOLD_ITERATIONS = n
         db, de = [], []
-        hb = diagnosis.heldout_log_likelihood(log, base.model, base.poses, [], detail=db)
-        he = diagnosis.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de)
+        hb = diagnosis.heldout_log_likelihood(log, base.model, base.poses, [], detail=db, iterations=n)
+        he = diagnosis.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de, iterations=n)
         if a.folds:
             for label, rows in (("base", db), (a.effect, de)):
                 for i, r in enumerate(rows):

@@ -12,10 +12,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from casm_graph.analysis import groundtruth
 from casm_graph.fit import continuous
+from casm_graph.fit.windows import WindowOptions
 from casm_graph.io import mrclam
 from casm_graph.io.log import load
 
@@ -32,22 +32,20 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default=None, help="the MRCLAM dataset directory (default: found as the tests find it)")
     ap.add_argument("--robot", type=int, default=4)
-    ap.add_argument("--factors", type=float, nargs="*", default=None, help="default: all of continuous.SLOPE_FACTORS")
+    ap.add_argument("--factors", type=float, nargs="*", default=None, help="default: all of WindowOptions().slope_factors")
     a = ap.parse_args()
     data = Path(a.data) if a.data else mrclam.find_data()
     with tempfile.TemporaryDirectory() as tmp:
         mrclam.import_robot(data, a.robot, Path(tmp) / "log")
         log = load(Path(tmp) / "log")
-    factors, starts = continuous.SLOPE_FACTORS, continuous.SLOPE_STARTS
+    factors = WindowOptions().slope_factors
     print(f"robot {a.robot}\n\n| start slope factor | slope | log-likelihood after the held rounds | turn map % | "
           "speed map % | position RMS m | final log-likelihood | seconds |\n|---|---|---|---|---|---|---|---|")
     for f in (a.factors if a.factors is not None else factors):
-        continuous.SLOPE_FACTORS, continuous.SLOPE_STARTS = np.array([f]), 1
         t0 = time.perf_counter()
-        fit = continuous.fit(log, marginals=False)
+        fit = continuous.fit(log, marginals=False, start_options=WindowOptions(slope_factors=(f,), slope_starts=1))
         (slope, held), = fit.model.fit["start_slopes"]
         print(f"| {f:.4f} | {slope:.3f} | {held:,.0f} | {judged(log, fit)} | {time.perf_counter() - t0:.0f} |", flush=True)
-    continuous.SLOPE_FACTORS, continuous.SLOPE_STARTS = factors, starts
     t0 = time.perf_counter()
     fit = continuous.fit(log, marginals=False)
     tried = ", ".join(f"{s:.3f} ({h:,.0f})" for s, h in fit.model.fit["start_slopes"])

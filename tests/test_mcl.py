@@ -14,6 +14,8 @@ import pytest
 
 from casm_graph.baselines import mcl
 from casm_graph.cli import main
+from casm_graph.fit import continuous
+from casm_graph.fit.windows import WindowOptions
 from casm_graph.io.log import write
 from casm_graph.models.effects.regional_motion_noise import from_entry
 from casm_graph.sim.floor import FloorConfig, region_of, simulate
@@ -111,11 +113,10 @@ def test_mcl_map_with_laser_like_sensing():
 def test_range_start_slopes_are_tried_and_the_likeliest_goes_on():
     """A range sensor's start slope is picked by the log-likelihood after the held coarse rounds, among the
     ``SLOPE_STARTS`` slopes whose windows agree best (MRCLAM robot 4 needed it); model.json records them."""
-    from casm_graph.fit import continuous
     log, _ = simulate(FloorConfig(minutes=2, seed=1))
     init = continuous.initialise(log, continuous.start_model(log))
     slopes = [init.slope] + [a.slope for a in init.alternatives]
-    assert len(set(slopes)) == continuous.SLOPE_STARTS
+    assert len(set(slopes)) == WindowOptions().slope_starts
     fit = continuous.fit(log, marginals=False)
     tried = fit.model.fit["start_slopes"]
     assert [s for s, _ in tried] == pytest.approx(slopes, rel=1e-5)

@@ -186,7 +186,7 @@ def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
 
 
 def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
-                           detail: list | None = None) -> float:
+                           detail: list | None = None, iterations: int = FOLD_ITERATIONS) -> float:
     """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
     a block say about it.
 
@@ -199,15 +199,16 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
     poses and from the model's own full-log poses and keeps the better (the drifted poses of a
     two-minute block without sightings can stop in another basin); the fit without it is the
     training problem with effects and noise held, so the training poses are already its optimum.
-    ``detail`` (a list) receives per fold the with-block log-likelihood from each start and the one without.
+    ``detail`` (a list) receives per fold the with-block log-likelihood from each start and the one without;
+    ``iterations`` bounds each fold's least squares.
     """
     total = 0.0
     fixed = [held(_resolve(e)) for e in effects]
     for mask in folds(log):
-        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=FOLD_ITERATIONS,
+        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=iterations,
                             rel_tol=FOLD_TOL)
         with_block, without = (
-            [effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=FOLD_ITERATIONS,
+            [effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=iterations,
                             obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
              for start in starts]
             for m, starts in ((None, (tr.poses, poses)), (mask, (tr.poses,))))

@@ -370,6 +370,8 @@ def paper_start(log: Log, degree: int = 3) -> Model:
         raise LogError("commands.csv: the table action model needs an 'action' column")
     ids = log.action_ids
     poly = np.zeros(degree + 1)
-    poly[0] = float(np.nanmedian(log.obs_reading))
+    if "reading" in log.channels:
+        poly[0] = float(np.nanmedian(log.obs_reading))
     return Model(action_ids=ids, velocities=np.zeros((len(ids), 3)), reading_poly=poly,
-                 reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA)
+                 reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
+                 channels=log.channels)
