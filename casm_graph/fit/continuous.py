@@ -31,8 +31,7 @@ import factors
 from casm_graph.fit import windows as W
 from casm_graph.fit.methods.base import Fit, Progress
 from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
-from casm_graph.fit.solve import least_squares
-from casm_graph.fit.solve import marginals as gaussian_marginals
+from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.graph import noise, robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, LogError, wrap
@@ -502,7 +501,7 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     pose_std = np.full_like(poses, np.nan)
     if marginals:
         progress.stage("marginals", None)
-        m, ridge = gaussian_marginals(problem.linearize(st), problem.keys_dims())
+        m, ridge = chain_marginals(problem, st)
         if ridge:
             warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
         body = np.empty((full.n_poses, 3))

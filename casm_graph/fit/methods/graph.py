@@ -9,8 +9,9 @@
 3. Sightings the coarse fit cannot explain by any Gaussian noise are pruned
    (:mod:`casm_graph.fit.outliers`, as the paper prunes in its first EM iteration); the coarse
    trajectory is filled in step by step and the full graph (a pose every step, as in the paper)
-   is optimised, its noise levels re-estimated once more, and GTSAM marginals give the
-   posterior std of every pose, velocity and coefficient.
+   is optimised, its noise levels re-estimated once more, and the Gaussian marginals (a selected
+   inversion of the pose chain, :func:`casm_graph.fit.solve.chain_marginals`) give the posterior std
+   of every pose, velocity and coefficient.
 """
 from __future__ import annotations
 
@@ -18,17 +19,14 @@ import time
 import warnings
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import C, V, X
 from scipy.stats import norm
 
 from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
-from casm_graph.fit.solve import least_squares
-from casm_graph.fit.solve import marginals as gaussian_marginals
+from casm_graph.fit.solve import arrow_solver, chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import noise
 from casm_graph.graph import table as G
@@ -51,10 +49,12 @@ def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0,
     """``model`` with every noise level re-estimated at the current optimum (see :mod:`noise`).
 
     ``relax`` > 1 over-relaxes the fixed-point step (in log sigma), which otherwise creeps down
-    slowly from a loose start because the trajectory follows whatever freedom it is given.
+    slowly from a loose start because the trajectory follows whatever freedom it is given. The hat
+    traces' solves use the pose chain's block elimination (O(length) memory; the sparse LU if singular).
     """
     A, e, groups = problem.jacobian(st)
-    traces = noise.hat_traces(A, groups, seed=seed, order=problem.column_order())
+    traces = noise.hat_traces(A, groups, seed=seed, lu=arrow_solver(A, problem.lay.n_poses),
+                              order=problem.column_order())
     new = {k: v ** relax for k, v in noise.group_scales(e, groups, traces, counts=problem.counts,
                                                          huber=("reading", "bearing")).items()}
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
@@ -103,7 +103,7 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress,
 
 
 def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) -> np.ndarray:
-    """Map-frame (sx, sy, stheta) from GTSAM's Pose2 marginals, which live in the body frame."""
+    """Map-frame (sx, sy, stheta) from Pose2 marginals, which live in the body frame (GTSAM's tangent)."""
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
     cov = R @ body_cov_xy @ np.transpose(R, (0, 2, 1))
@@ -186,18 +186,14 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     pose_std, ridge = np.full_like(poses, np.nan), None
     if marginals:
         progress.stage("marginals", None)
-        m, ridge = gaussian_marginals(problem.linearize(st), problem.keys_dims())
+        m, ridge = chain_marginals(problem, st)
         if ridge:
             warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
-        cov_xy = np.empty((full.n_poses, 2, 2))
-        for i in range(full.n_poses):
-            cov = m.marginalCovariance(X(i))
-            pose_std[i] = np.sqrt(np.diag(cov))
-            cov_xy[i] = cov[:2, :2]
-        keys = gtsam.KeyVector([V(a) for a in range(full.n_actions)] + [C(0)])
-        joint = m.jointMarginalCovariance(keys)
-        vstd = np.array([np.sqrt(np.diag(joint.at(V(a), V(a)))) for a in range(full.n_actions)])
-        ccov = np.asarray(joint.at(C(0), C(0)))
+        cov_xy = m.pose_cov[:, :2, :2]
+        pose_std = np.sqrt(np.diagonal(m.pose_cov, axis1=1, axis2=2))
+        nv = 3 * full.n_actions
+        vstd = np.sqrt(np.diag(m.param_cov)[:nv]).reshape(full.n_actions, 3)
+        ccov = m.param_cov[nv:, nv:].copy()
         model = model.with_(velocity_std=vstd, reading_poly_std=np.sqrt(np.diag(ccov)), reading_poly_cov=ccov)
         pose_std = world_std(poses, pose_std, cov_xy)
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)
