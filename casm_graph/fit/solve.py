@@ -335,7 +335,10 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
             lin = problem.linearize(st, poses_only=freeze_parameters)
         while True:
             if direct:
-                trial = problem.retract(st, problem.solve_damped(neq, lam))
+                try:
+                    trial = problem.retract(st, problem.solve_damped(neq, lam))
+                except np.linalg.LinAlgError:   # singular at this damping (cancellation in the chain): damp more
+                    trial = None
             else:
                 if lam not in damping:
                     damping[lam] = _damping(keys_dims, lam)

@@ -422,7 +422,10 @@ class EffectProblem:
             - 0.5 * r.action_e.size * np.log(2 * np.pi)
         t = self.observation_terms(st)
         D, B = chain.information_blocks(self, st)
-        _, _, logdet = chain.select_inverse(D, B)
+        try:
+            _, _, logdet = chain.select_inverse(D, B)
+        except np.linalg.LinAlgError:     # singular to machine precision: no Laplace value (NaN, as a negative
+            logdet = np.nan               # determinant gives), so no candidate is supported on its strength
         return {"motion": float(lm), "observation": float(np.sum(t["log_density"][self.obs_mask])),
                 "pose_constant": 1.5 * self.lay.n_poses * np.log(2 * np.pi), "half_log_det": 0.5 * float(logdet)}
 
