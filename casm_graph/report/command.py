@@ -43,9 +43,15 @@ def residual_figure(log: Log, fit: Fit):
     d = residuals.distances(fit.poses[log.obs_step], log)
     fig, axs = subplots(1, 3, figsize=(13, 3.6))
     axs[0].plot(d, r, ".", ms=2, alpha=0.4)
-    axs[0].set(xlabel="distance (m)", ylabel="reading residual", title=f"reading (sigma {fit.model.reading_sigma:.3g})")
+    axs[0].set(xlabel="distance (m)", ylabel="reading residual", title=f"reading (sigma {fit.model.noise_text('reading', '.3g')})")
     axs[1].plot(log.obs_t, b, ".", ms=2, alpha=0.4)
-    axs[1].set(xlabel="time (s)", ylabel="bearing residual (rad)", title=f"bearing (sigma {fit.model.bearing_sigma:.3g})")
+    axs[1].set(xlabel="time (s)", ylabel="bearing residual (rad)",
+               title=f"bearing (sigma {fit.model.noise_text('bearing', '.3g')})")
+    for ax, channel in zip(axs[:2], ("reading", "bearing")):
+        if not fit.model.has(channel):
+            ax.set_title(f"{channel} (not measured)")
+            ax.text(0.5, 0.5, f"this log has no {channel}s", ha="center", va="center", transform=ax.transAxes,
+                    backgroundcolor="white")
     if log.truth is not None:
         err = np.hypot(*(fit.poses[:, :2] - log.truth[:, 1:3]).T)
         axs[2].plot(log.pose_times, err, lw=0.6)

@@ -38,6 +38,11 @@ def sensor_figure(log: Log, fit: Fit, truth: dict | None):
     m = fit.model
     d_obs = residuals.distances(fit.poses[log.obs_step], log)
     fig, ax = subplots(figsize=(7, 4))
+    if not m.has("reading"):
+        ax.text(0.5, 0.5, "no readings in this log (a bearing-only sensor):\nno sensor curve to learn",
+                ha="center", va="center", transform=ax.transAxes)
+        ax.set(title="Sensor model", xticks=[], yticks=[])
+        return fig
     ok = ~np.isnan(log.obs_reading)
     ax.plot(d_obs[ok], log.obs_reading[ok], ".", ms=1, alpha=0.3, color="0.5", label="readings at fitted poses")
     lo, hi = m.distance_range
