@@ -5,13 +5,10 @@ observation, so sightings attach to their own pose exactly), one vector variable
 command model of :mod:`casm_graph.models.command_model`, and the sensor polynomial. Consecutive knots are
 joined by a :mod:`factors.command` factor over the command steps between them.
 
-The start is global, as for the action table (:mod:`casm_graph.fit.initialise`):
-1. the grid smoother of :func:`casm_graph.fit.locate.locate` finds positions and the sensor curve
-   with no velocities (reading = k d**p hypotheses; a range wins with p = +1);
-2. the turn map is the one whose integrated commands best explain the headings that the bearings
-   imply, by a grid search over its offset and gain (summed resultant lengths of 10 s windows);
-3. with headings fixed, positions are linear in the speed-map coefficients: least squares.
-Then a coarse graph (1 s knots) is optimised in rounds that re-estimate every noise level and set
+The start is global (:mod:`casm_graph.fit.windows`): the sensor hypothesis from the grid smoother of
+:func:`casm_graph.fit.locate.locate`, the command maps at the nominal velocity = command, and each
+window of sightings placed along its dead-reckoned path at every candidate heading, the headings
+chained across windows. Then a coarse graph (1 s knots) is optimised in rounds that re-estimate every noise level and set
 aside sightings more than ``robust.GATE`` sigmas off, its first rounds with the nominal maps and the
 polynomial held (the sightings place the poses before the maps may move), and a finer graph
 (0.25 s knots) finishes.
@@ -171,8 +168,7 @@ class Problem:
 
     def cost(self, st: State) -> float:
         """Half the squared motion and prior rows plus the sightings' Huber loss (what each IRLS step lowers)."""
-        ae, _, _, _, _, _, pe = self.rows(st)
-        re, _, be, _ = self.sightings(st)
+        ae, _, re, _, be, _, pe = self.rows(st, robust_weights=False)
         return (0.5 * float(np.sum(ae ** 2) + np.sum(pe ** 2))
                 + float(np.sum(robust.huber_loss(re)) + np.sum(robust.huber_loss(be))))
 
@@ -330,9 +326,7 @@ def step_velocities(log: Log, model: Model) -> np.ndarray:
 
 def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
-    poses = G.integrate(start, model.command.velocities(controls, dt) * dt[:, None])
-    poses[:, 2] = wrap(poses[:, 2])
-    return poses
+    return W.dead_reckon_steps(model.command.velocities(controls, dt), dt, start)
 
 
 def fill_in(log: Log, model: Model, knots: np.ndarray, knot_poses: np.ndarray) -> np.ndarray:

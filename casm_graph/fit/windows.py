@@ -63,7 +63,6 @@ class WindowStart:
     hypothesis: tuple[float, float]
     log_evidence: float
     windows_placed: float        # fraction of windows whose start pose the sightings fixed
-    mode: str                    # "both", "range" or "bearing": the channels the windows were placed by
     slope: float = float("nan")  # a range sensor's start slope (reading = slope d)
     alternatives: list = field(default_factory=list)   # runner-up range slopes' starts, best agreement first
     model: Model | None = None   # the start model, when the caller attached one (``with_model``)
@@ -112,15 +111,6 @@ def range_bearing_fits(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray
     mx, my = np.median(x, axis=1, keepdims=True), np.median(y, axis=1, keepdims=True)
     cost = np.minimum(((x - mx) ** 2 + (y - my) ** 2) / spread ** 2, 9.0).sum(axis=1)
     return np.column_stack([mx[:, 0], my[:, 0]]), cost
-
-
-def window_pose(fix_lm: np.ndarray, dist: np.ndarray, bearing: np.ndarray, rel: np.ndarray,
-                headings: np.ndarray, spread: float = 0.15):
-    """Start pose of one window from its sightings: the heading of :func:`range_bearing_fits` that agrees best.
-    Returns (x0, y0, theta0) and the winning cost."""
-    p, cost = range_bearing_fits(fix_lm, dist, bearing, rel, headings, spread)
-    i = int(np.argmin(cost))
-    return np.array([p[i, 0], p[i, 1], headings[i]]), float(cost[i])
 
 
 def window_pose_ranges(fix_lm: np.ndarray, dist: np.ndarray, rel: np.ndarray, headings: np.ndarray,
@@ -183,14 +173,6 @@ def bearing_fits(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarray, headi
     return np.column_stack([px, py]), cost
 
 
-def window_pose_bearings(fix_lm: np.ndarray, bearing: np.ndarray, rel: np.ndarray, headings: np.ndarray,
-                         spread: float = 0.05):
-    """Start pose of one window from bearings alone: the heading of :func:`bearing_fits` whose rays meet best."""
-    p, cost = bearing_fits(fix_lm, bearing, rel, headings, spread)
-    i = int(np.argmin(cost))
-    return np.array([p[i, 0], p[i, 1], headings[i]]), float(cost[i])
-
-
 def chain_headings(costs: list[np.ndarray], positions: list[np.ndarray], moves: np.ndarray, headings: np.ndarray,
                    spread: float, cap: float = 25.0) -> np.ndarray:
     """The likeliest sequence of window start headings (index per window), by dynamic programming.
@@ -230,7 +212,6 @@ def grid_cell(log: Log, finest: float = 0.1, cells: int = 150) -> float:
     """Cell of the start's grid smoother: ``finest`` metres, coarser on fields larger than ``cells`` of it
     (a plaza of beacons 70 m apart would otherwise need half a million cells per knot)."""
     return max(finest, float(np.ptp(log.landmark_xy, axis=0).max()) / cells)
-
 
 
 def window_start(log: Log, velocity: np.ndarray, n_poly: int, speed: float,
@@ -337,7 +318,7 @@ def window_start(log: Log, velocity: np.ndarray, n_poly: int, speed: float,
             res = log.obs_reading[ob] - np.polynomial.polynomial.polyval(np.hypot(*(lm - poses[step, :2]).T), poly)
             sigma = float(max(1.4826 * np.median(np.abs(res)), 1e-6))
         return WindowStart(poses, np.asarray(poly, float), sigma, (p_hyp, k_hyp),
-                           loc.log_evidence if loc is not None else float("nan"), len(starts) / max(n_win, 1), mode,
+                           loc.log_evidence if loc is not None else float("nan"), len(starts) / max(n_win, 1),
                            float(poly[1]) if mode != "bearing" else float("nan"))
 
     if p_hyp != 1.0:
