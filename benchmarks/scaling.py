@@ -8,7 +8,9 @@ process of ``casm-graph``. Printed as a markdown table: wall time, peak memory (
 resident set size, from ``os.wait4``), iterations (``fit.iterations`` of model.json, calibrate only),
 the share of each progress stage (read from the tqdm bars the CLI prints on stderr, to the second),
 and per kind and command the fitted exponent of cost against length (least-squares slope of log
-time on log minutes: 1 is linear).
+time on log minutes: 1 is linear), of wall time and of the child's CPU time (which load on a shared
+machine moves less); for ``uncertainty`` also the sampler's length (steps, set by the autocorrelation
+time) and its CPU seconds per likelihood evaluation, whose exponent is the cost per sample.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/scaling.py --minutes 15 30 60 120 --kinds table floor
 
@@ -68,7 +70,8 @@ def stage_seconds(stderr: str) -> dict[str, int]:
 
 def run(cmd: list[str], log_file: Path, pythonpath: str = ".") -> dict:
     """Run ``cmd`` (``pythonpath`` first on its PYTHONPATH, ``.``: as inherited); wall seconds, the child's
-    peak RSS (MB), exit code and its stderr."""
+    CPU seconds (user + system: steadier than wall time on a loaded machine), peak RSS (MB), exit code and
+    its stderr."""
     env = {**os.environ, "PYTHONSAFEPATH": "1"}      # not the working directory's package ahead of PYTHONPATH
     if pythonpath != ".":
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(Path(pythonpath).resolve()), env.get("PYTHONPATH")) if p)
@@ -79,7 +82,8 @@ def run(cmd: list[str], log_file: Path, pythonpath: str = ".") -> dict:
     wall = time.perf_counter() - t0
     p.returncode = os.waitstatus_to_exitcode(status)
     text = log_file.read_text(errors="replace")
-    return {"seconds": wall, "peak_mb": usage.ru_maxrss / 1024.0, "status": p.returncode, "stderr": text}
+    return {"seconds": wall, "cpu": usage.ru_utime + usage.ru_stime, "peak_mb": usage.ru_maxrss / 1024.0,
+            "status": p.returncode, "stderr": text}
 
 
 def cli(*args: str) -> list[str]:
@@ -174,7 +178,13 @@ def main(argv=None) -> int:
                     if res["status"]:
                         print(f"{' '.join(cmd)} failed (status {res['status']}):\n{res['stderr'][-2000:]}",
                               file=sys.stderr)
-                    iterations, check, same = None, "", ""
+                    iterations, check, same, sampler = None, "", "", None
+                    if command == "uncertainty" and (out / "posterior.json").is_file():
+                        post = json.loads((out / "posterior.json").read_text())
+                        sampler = {"steps": post["sampler"]["steps"], "walkers": post["sampler"]["walkers"],
+                                   "evaluations": post["likelihood"]["evaluations"],
+                                   "cpu_per_evaluation": post["likelihood"]["cpu_seconds_per_evaluation"],
+                                   "tau": max(post["sampler"]["autocorr_time"].values())}
                     if command == "calibrate" and (out / "model.json").is_file():
                         iterations = json.loads((out / "model.json").read_text())["fit"].get("iterations")
                         check = accuracy(kind, log_dir, out)
@@ -182,19 +192,21 @@ def main(argv=None) -> int:
                         if label != versions[0][0] and (first / "model.json").is_file():
                             same = difference(out, first)
                     rows.append({"version": label, "kind": kind, "minutes": minutes, "command": command,
-                                 "seconds": res["seconds"], "peak_mb": res["peak_mb"], "iterations": iterations,
+                                 "seconds": res["seconds"], "cpu": res["cpu"], "peak_mb": res["peak_mb"], "iterations": iterations,
                                  "stages": stage_seconds(res["stderr"]), "status": res["status"],
-                                 "truth": check, "vs_first": same})
-                    print(f"{label} {kind} {minutes:g} min {command}: {res['seconds']:.1f} s, {res['peak_mb']:.0f} MB, "
+                                 "truth": check, "vs_first": same, "sampler": sampler})
+                    print(f"{label} {kind} {minutes:g} min {command}: {res['seconds']:.1f} s ({res['cpu']:.1f} CPU s), "
+                          f"{res['peak_mb']:.0f} MB, "
                           f"{iterations} iterations", file=sys.stderr, flush=True)
 
-    print("| version | kind | minutes | command | wall s | peak MB | iterations | stage shares |")
-    print("|---|---|---:|---|---:|---:|---:|---|")
+    print("| version | kind | minutes | command | wall s | CPU s | peak MB | iterations | stage shares |")
+    print("|---|---|---:|---|---:|---:|---:|---:|---|")
     for r in rows:
         total = sum(r["stages"].values())
         shares = ", ".join(f"{k} {100 * v / total:.0f}%" for k, v in r["stages"].items()) if total else ""
         status = "" if r["status"] == 0 else f" (failed, status {r['status']})"
         print(f"| {r['version']} | {r['kind']} | {r['minutes']:g} | {r['command']}{status} | {r['seconds']:.1f} | "
+              f"{r['cpu']:.1f} | "
               f"{r['peak_mb']:.0f} | {'' if r['iterations'] is None else r['iterations']} | {shares} |")
     print()
     head = "| version | kind | minutes | against the truth |" + (f" largest relative difference from {versions[0][0]} |"
@@ -206,8 +218,18 @@ def main(argv=None) -> int:
             print(f"| {r['version']} | {r['kind']} | {r['minutes']:g} | {r['truth']} |"
                   + (f" {r['vs_first'] or '-'} |" if len(versions) > 1 else ""))
     print()
-    print("| version | kind | command | exponent of wall time vs minutes | longest / shortest |")
-    print("|---|---|---|---:|---:|")
+    samplers = [r for r in rows if r["sampler"]]
+    if samplers:
+        print("| version | kind | minutes | sampler steps x walkers | max tau | CPU s per evaluation |")
+        print("|---|---|---:|---:|---:|---:|")
+        for r in samplers:
+            sp = r["sampler"]
+            print(f"| {r['version']} | {r['kind']} | {r['minutes']:g} | {sp['steps']} x {sp['walkers']} | "
+                  f"{sp['tau']:.1f} | {sp['cpu_per_evaluation']:.4f} |")
+        print()
+    print("| version | kind | command | exponent of wall time | of CPU time | of CPU per evaluation | "
+          "longest / shortest (wall) |")
+    print("|---|---|---|---:|---:|---:|---:|")
     for label, _ in versions:
         for kind in args.kinds:
             for command in args.commands:
@@ -215,9 +237,13 @@ def main(argv=None) -> int:
                        and r["status"] == 0]
                 if len(sel) >= 2:
                     sel.sort(key=lambda r: r["minutes"])
-                    k = exponent([r["minutes"] for r in sel], [r["seconds"] for r in sel])
+                    mins = [r["minutes"] for r in sel]
+                    k = exponent(mins, [r["seconds"] for r in sel])
+                    kc = exponent(mins, [r["cpu"] for r in sel])
+                    ke = (f"{exponent(mins, [r['sampler']['cpu_per_evaluation'] for r in sel]):.2f}"
+                          if all(r["sampler"] for r in sel) else "")
                     ratio = sel[-1]["seconds"] / sel[0]["seconds"]
-                    print(f"| {label} | {kind} | {command} | {k:.2f} | "
+                    print(f"| {label} | {kind} | {command} | {k:.2f} | {kc:.2f} | {ke} | "
                           f"{ratio:.1f}x for {sel[-1]['minutes'] / sel[0]['minutes']:g}x |")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

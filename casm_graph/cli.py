@@ -187,6 +187,8 @@ def _uncertainty(args) -> int:
           f"(burn-in {ch.burn_in}), {1000 * ch.seconds_per_evaluation:.1f} ms per likelihood evaluation")
     for n, s in unc.intervals.items():
         print(f"  {n:<24} {s['median']:.4g}  90% [{s['ci90'][0]:.4g}, {s['ci90'][1]:.4g}]")
+    if unc.ml.set_aside():
+        print(f"  {unc.ml.set_aside()} sighting(s) set aside as gross outliers")
     for note in ch.notes:
         print(f"casm-graph: warning: {note}", file=sys.stderr)
     print(f"  wrote {args.out}/posterior.json, model.json, corner.png, trace.png, report.html")

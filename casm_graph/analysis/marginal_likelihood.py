@@ -38,6 +38,7 @@ from numba import njit
 from scipy.sparse.linalg import splu
 
 from casm_graph.fit import continuous as CT
+from casm_graph.fit.outliers import outlying
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph.augmented import AState, EffectProblem, instantiate, theta_from_model
 from casm_graph.io.log import Log, wrap
@@ -365,6 +366,10 @@ class NoiseLikelihood:
     x_map: np.ndarray
     integrated_out: tuple = ()
 
+    def set_aside(self) -> int:
+        """Sightings left out as gross outliers (a wild reading must not set the noise levels)."""
+        return 0
+
     def coords(self, x) -> np.ndarray:
         """Sampling coordinates: log of every sigma, effect parameters as they are."""
         x = np.asarray(x, float)
@@ -405,9 +410,14 @@ class MarginalLikelihood(NoiseLikelihood):
 
     integrated_out = ("poses", "velocity table", "sensor polynomial", "effect parameters (least squares)")
 
+    def set_aside(self) -> int:
+        return self._set_aside
+
     def __init__(self, problem: EffectProblem, st: AState, model: Model, integrate_parameters: bool = True):
         self.problem, self.state, self.model = problem, st, model
         self.integrate = integrate_parameters
+        measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
+        self._set_aside = int(np.sum(measured & ~problem.obs_mask))
         self.params = noise_parameters(problem, model, st.theta)
         self.names = [p.name for p in self.params]
         self.x_map = np.array([p.value for p in self.params])
@@ -595,10 +605,19 @@ class MarginalLikelihood(NoiseLikelihood):
 
 # ------------------------------------------------------------------------------ set-up
 def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -> tuple[EffectProblem, AState]:
-    """The effect graph of ``model`` on ``log`` and its MAP (poses, table, polynomial) at the model's noise."""
+    """The effect graph of ``model`` on ``log`` and its MAP (poses, table, polynomial) at the model's noise.
+
+    Gross outliers at ``poses`` are set aside first (:func:`casm_graph.fit.outliers.outlying`, as the
+    calibration prunes them): the likelihood is Gaussian, so one reading thousands of sigmas off would
+    otherwise set the motion noise levels the sampler sees. A model with an outlier mixture
+    (``false_detections``) keeps every sighting: the mixture is its model of them."""
     effects = instantiate(list(model.effects), log)
     theta = theta_from_model(effects, model)
     problem = EffectProblem(log, model, effects, theta)
+    if problem.outlier_fraction(theta) == 0:
+        keep = ~outlying(log, model, np.asarray(poses, float))
+        if not keep.all():
+            problem = EffectProblem(log, model, effects, theta, obs_mask=keep)
     st = problem.state(poses, model, theta)
     problem.refresh_noise_state(st)
     st, _ = least_squares(problem, st, max_iterations=iterations)
@@ -667,8 +686,15 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
 
     integrated_out = ("poses (knots)", "command map", "sensor polynomial")
 
+    def set_aside(self) -> int:
+        return self._set_aside
+
     def __init__(self, problem: CT.Problem, st: CT.State, model: Model):
         self.problem, self.state, self.model = problem, st, model
+        log = problem.log
+        lost_r = np.isfinite(log.obs_reading) & ~problem.r_sel & model.has("reading")
+        lost_b = np.isfinite(log.obs_bearing) & ~problem.b_sel & model.has("bearing")
+        self._set_aside = int(np.sum(lost_r | lost_b))
         A, e, groups = unit_rows(problem, st, model)
         n = A.shape[1]
         self.n = n

@@ -62,6 +62,8 @@ class Uncertainty:
                  f"(burn-in {ch.burn_in}), acceptance {ch.acceptance:.2f}"]
         lines += [f"  {n:<24} {s['median']:.4g}  90% [{s['ci90'][0]:.4g}, {s['ci90'][1]:.4g}]"
                   for n, s in self.intervals.items()]
+        if self.ml.set_aside():
+            lines.append(f"  {self.ml.set_aside()} sighting(s) set aside as gross outliers")
         return "\n".join(lines + [f"  note: {n}" for n in ch.notes])
 
     def save(self, out, force: bool = False) -> Path:
@@ -85,6 +87,7 @@ class Uncertainty:
             "likelihood": {"method": "laplace",
                            "integrated_out": list(self.ml.integrated_out),
                            "linearisation": "MAP at the model's noise levels",
+                           "sightings_set_aside": self.ml.set_aside(),
                            "evaluations": ch.evaluations,
                            "seconds_per_evaluation": ch.seconds_per_evaluation,
                            "cpu_seconds_per_evaluation": ch.cpu_seconds_per_evaluation,
