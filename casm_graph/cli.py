@@ -135,12 +135,10 @@ def _diagnose(args) -> int:
     try:
         with (fleet.client_for(args.scheduler) if args.scheduler else contextlib.nullcontext()) as client:
             diag = diagnose_run.run(args.log, args.model, args.out, workers=args.workers, progress=bar,
-                                    candidates=args.candidate, force=args.force, client=client)
+                                    candidates=args.candidate, force=args.force, client=client, before=args.before)
     finally:
         bar.close()
-    print(f"verdict: {diag.verdict}  ({diag.seconds:.0f} s)")
-    for w in diag.words:
-        print("  " + w)
+    print(diag.summary())
     print(f"  wrote {args.out}/diagnosis.json, report.html")
     return 0
 
@@ -245,6 +243,8 @@ def parser() -> argparse.ArgumentParser:
                    help="try only this effect (repeatable; default: every applicable catalog effect)")
     d.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="fit the candidates and folds on this Dask scheduler (tcp://host:port or a scheduler file)")
+    d.add_argument("--before", default=None, metavar="DIAG",
+                   help="an earlier diagnosis of this log (its directory or diagnosis.json): show what changed")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.add_argument("--force", action="store_true", help="replace --out if it exists and is not empty")
     d.set_defaults(func=_diagnose)

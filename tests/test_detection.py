@@ -61,6 +61,12 @@ def test_hidden_effect_is_named_added_and_the_error_falls(effect, tmp_path):
         assert t.verdict_after == "none", f"after adding {effect}: {t.verdict_after}"
         assert t.heldout_gain > 0                                   # held-out error falls
         assert t.error_after["total"] < t.error_before["total"], (t.error_before, t.error_after)
+        ch = t.change                                               # the before/after view of the diagnosis
+        assert ch["verdict"] == [effect, "none"] and ch["effects"][1] == [effect]
+        if ch["sightings_set_aside"][0] == ch["sightings_set_aside"][1]:   # same sightings: comparable
+            assert ch["log_likelihood"][1] > ch["log_likelihood"][0]
+        if effect == "actuator_lag":                                # the lag's error is in the forward motion
+            assert ch["channels"]["forward"]["rms_raw"][1] < 0.8 * ch["channels"]["forward"]["rms_raw"][0]
 
 
 @pytest.mark.science

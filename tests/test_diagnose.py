@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 from casm_graph.analysis import diagnosis as D
+from casm_graph.analysis.before_after import compare, load_before
+from casm_graph.analysis.correlation import correlation, strongest
 from casm_graph.fit.residuals import Channel
+from casm_graph.io.log import LogError
 from casm_graph.models.effects import REGISTRY
 from casm_graph.pipeline import calibrate as calibrate_run
 
@@ -170,3 +173,48 @@ def test_compare_against_measured_tables(short_run, tmp_path):
     (meas / "sensor.csv").write_text("distance,reading\n1.0,abc\n")
     r = cli("compare", run / "model.json", "--measured", meas, "--out", tmp_path / "cmp2")
     assert r.returncode == 2 and "sensor.csv" in r.stderr and not (tmp_path / "cmp2").exists()
+
+
+def test_correlation_finds_a_lagged_response_and_passes_white_noise():
+    """resid-style cross-correlation: a motion residual that follows its velocity's changes (an unmodelled
+    lag) leaves the 99 % band at positive lags; white residuals stay inside it nearly everywhere."""
+    rng = np.random.default_rng(4)
+    n = 6000
+    v = np.repeat(rng.choice([-0.2, 0.0, 0.2], size=n // 60), 60)            # a command switching every 2 s
+    dv = np.diff(v, prepend=v[:1])
+    lagged = -np.convolve(dv, np.exp(-np.arange(15) / 5.0))[:n] * 5 + rng.normal(size=n)
+    white = rng.normal(size=n)
+    t = np.arange(n) / 30.0
+    chs = {"forward": Channel("forward", lagged, lagged, t, {}, command=v),
+           "lateral": Channel("lateral", white, white, t, {}, command=v),
+           "reading": Channel("reading", white, white, t, {})}
+    corr = correlation(chs)
+    fw = corr["forward"]
+    assert fw["series"] == "cross" and fw["peak"] < -2 * fw["band"] and 0 <= fw["peak_lag_s"] < 0.5
+    assert corr["lateral"]["outside"] <= 3 and corr["reading"]["series"] == "auto" and corr["reading"]["outside"] <= 3
+    assert strongest(corr)[0] == "forward"
+
+
+def test_before_after_compares_channels_and_refuses_a_bad_file(tmp_path):
+    before = {"verdict": "actuator_lag", "base": {"log_likelihood": -100.0, "effects": {}},
+              "channels": {"forward": {"rms": 1.2, "rms_raw": 0.002,
+                                       "covariates": [{"name": "time_since_action_change", "kind": "mean",
+                                                       "strength": 0.05, "p": 1e-9}]}}}
+    after = {"verdict": "none", "base": {"log_likelihood": -60.0, "effects": {"actuator_lag": {"tau": 0.3}}},
+             "channels": {"forward": {"rms": 1.0, "rms_raw": 0.001,
+                                      "covariates": [{"name": "time_since_action_change", "kind": "mean",
+                                                      "strength": 0.001, "p": 0.3}]}}}
+    ch = compare(before, after)
+    assert ch["verdict"] == ["actuator_lag", "none"] and ch["effects"] == [[], ["actuator_lag"]]
+    assert ch["log_likelihood"] == [-100.0, -60.0]
+    assert ch["channels"]["forward"]["rms_raw"] == [0.002, 0.001]
+    assert ch["channels"]["forward"]["covariate"]["strength"] == [0.05, 0.001]
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "diagnosis.json").write_text(json.dumps(before))
+    assert load_before(tmp_path / "d")["verdict"] == "actuator_lag"
+    for bad, why in (("[1, 2]", "not a diagnosis.json"), ("{nope", "not a diagnosis.json")):
+        (tmp_path / "bad.json").write_text(bad)
+        with pytest.raises(LogError, match=why):
+            load_before(tmp_path / "bad.json")
+    with pytest.raises(LogError, match="no diagnosis.json"):
+        load_before(tmp_path / "missing")

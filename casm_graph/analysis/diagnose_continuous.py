@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 import factors
+from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.diagnosis import Candidate, Diagnosis, channel_report, structures, verdict
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
@@ -56,7 +57,7 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
            "turn_rate": seg_v[:, 2], "time_since_action_change": since}
     out = {}
     for k, name in enumerate(("forward", "lateral", "turn")):
-        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov)
+        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov, command=seg_v[:, k])
     pose = P[lay.obs_knot]
     res = CT.sighting_residuals(log, pose, model)
     dist, bearing = res["distance"], res["bearing"]
@@ -112,4 +113,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")
-    return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped)
+    lost = ((np.isfinite(log.obs_reading) & ~problem.r_sel & model.has("reading"))
+            | (np.isfinite(log.obs_bearing) & ~problem.b_sel & model.has("bearing")))
+    return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
+                     set_aside=int(np.sum(lost)), correlation=correlation(chs))

@@ -34,6 +34,7 @@ from typing import Callable
 import numpy as np
 from scipy import stats
 
+from casm_graph.analysis.correlation import correlation
 from casm_graph.fit import effect_fit
 from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
 from casm_graph.graph.augmented import instantiate
@@ -363,6 +364,10 @@ class Diagnosis:
     residuals: dict
     seconds: float
     skipped: dict
+    set_aside: int = 0               # sightings left out as gross outliers (continuous logs; an action table's
+    #                                  diagnosis keeps them: a few wild sightings are what false_detections models)
+    correlation: dict = field(default_factory=dict)   # residual auto- and cross-correlation (analysis.correlation)
+    before_after: dict | None = None  # the change from an earlier diagnosis (analysis.before_after.compare)
     log: Log | None = None           # the log diagnosed (its report needs it)
     write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
 
@@ -371,11 +376,34 @@ class Diagnosis:
                 "candidates": [c.to_json() for c in self.candidates], "verdict": self.verdict,
                 "summary": self.words, "not_applicable": self.skipped,
                 "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
+                "sightings_set_aside": self.set_aside, "correlation": self.correlation,
+                **({"before_after": self.before_after} if self.before_after else {}),
                 "seconds": round(self.seconds, 2)}
 
     def summary(self) -> str:
         """The verdict and the reasons, as ``casm-graph diagnose`` prints them."""
-        return "\n".join([f"verdict: {self.verdict}  ({self.seconds:.0f} s)", *("  " + w for w in self.words)])
+        aside = [f"{self.set_aside} sighting(s) set aside as gross outliers"] if self.set_aside else []
+        return "\n".join([f"verdict: {self.verdict}  ({self.seconds:.0f} s)",
+                          *("  " + w for w in self.words + aside + self.change_lines())])
+
+    def change_lines(self) -> list[str]:
+        """The change from the earlier diagnosis (``before``), a line per channel, in words."""
+        ba = self.before_after
+        if not ba:
+            return []
+        (v0, v1), (e0, e1), (l0, l1) = ba["verdict"], ba["effects"], ba["log_likelihood"]
+        lines = [f"Since the earlier diagnosis (verdict {v0}, effects {', '.join(e0) or 'none'}): verdict {v1}, "
+                 f"effects {', '.join(e1) or 'none'}" + (f", log-likelihood {l0:.1f} -> {l1:.1f}"
+                                                         if l0 is not None and l1 is not None else "") + "."]
+        for ch, row in ba["channels"].items():
+            r0, r1 = row["rms_raw"]
+            words = f"  {ch}: residual RMS {r0:.4g} -> {r1:.4g}" if r0 is not None and r1 is not None else f"  {ch}:"
+            cov = row.get("covariate")
+            if cov and None not in cov["strength"]:
+                words += f"; {cov['kind']} vs {cov['name']} explained {100 * cov['strength'][0]:.1f} % -> " \
+                         f"{100 * cov['strength'][1]:.1f} %"
+            lines.append(words)
+        return lines
 
     def save(self, out, force: bool = False) -> Path:
         """Write DIAG (diagnosis.json, report.html) all or nothing; ``out`` must be new or empty."""
@@ -442,4 +470,5 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     struct = structures(rep)
     v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool})
-    return Diagnosis(rep, cands, v, words, struct, refit, chs, time.perf_counter() - t0, skipped)
+    return Diagnosis(rep, cands, v, words, struct, refit, chs, time.perf_counter() - t0, skipped,
+                     correlation=correlation(chs))

@@ -38,7 +38,7 @@ from numba import njit
 from scipy.sparse.linalg import splu
 
 from casm_graph.fit import continuous as CT
-from casm_graph.fit.outliers import outlying
+from casm_graph.fit.outliers import kept
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph.augmented import AState, EffectProblem, instantiate, theta_from_model
 from casm_graph.io.log import Log, wrap
@@ -607,17 +607,12 @@ class MarginalLikelihood(NoiseLikelihood):
 def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -> tuple[EffectProblem, AState]:
     """The effect graph of ``model`` on ``log`` and its MAP (poses, table, polynomial) at the model's noise.
 
-    Gross outliers at ``poses`` are set aside first (:func:`casm_graph.fit.outliers.outlying`, as the
-    calibration prunes them): the likelihood is Gaussian, so one reading thousands of sigmas off would
-    otherwise set the motion noise levels the sampler sees. A model with an outlier mixture
-    (``false_detections``) keeps every sighting: the mixture is its model of them."""
+    Gross outliers at ``poses`` are set aside first (:func:`casm_graph.fit.outliers.kept`, as the calibration
+    prunes them): the likelihood is Gaussian, so one reading thousands of sigmas off would otherwise set the
+    reading sigma the sampler sees."""
     effects = instantiate(list(model.effects), log)
     theta = theta_from_model(effects, model)
-    problem = EffectProblem(log, model, effects, theta)
-    if problem.outlier_fraction(theta) == 0:
-        keep = ~outlying(log, model, np.asarray(poses, float))
-        if not keep.all():
-            problem = EffectProblem(log, model, effects, theta, obs_mask=keep)
+    problem = EffectProblem(log, model, effects, theta, obs_mask=kept(log, model, poses, effects))
     st = problem.state(poses, model, theta)
     problem.refresh_noise_state(st)
     st, _ = least_squares(problem, st, max_iterations=iterations)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from casm_graph.fit.locate import locate
+from casm_graph.fit.locate import grid_cell, locate
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.model import Model
 
@@ -67,8 +67,10 @@ def _headings(seg_of_knot, seg_act, t_knot, obs_knot, dirs, bearing, w_max=3.0):
     return out
 
 
-def initialise(log: Log, model: Model, stride: int = 5, cell: float = 0.1) -> Start:
-    """Global start for ``calibrate``: trajectory, velocity table and sensor polynomial."""
+def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = None) -> Start:
+    """Global start for ``calibrate``: trajectory, velocity table and sensor polynomial (``cell``: the grid
+    smoother's, by default :func:`casm_graph.fit.locate.grid_cell`)."""
+    cell = grid_cell(log) if cell is None else cell
     T = log.steps
     knots = np.arange(0, T + 1, stride)
     t_pose = log.pose_times

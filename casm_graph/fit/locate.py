@@ -26,6 +26,13 @@ class _Grid:
     dist: np.ndarray            # (L, ny, nx) distance from each cell to each landmark
 
 
+def grid_cell(log: Log, finest: float = 0.1, cells: int = 150) -> float:
+    """Cell of the start's grid smoother: ``finest`` metres, coarser on fields larger than ``cells`` of it
+    (a plaza of beacons 70 m apart would otherwise need half a million cells per knot, and a landmark a
+    thousand kilometres off, all the memory there is)."""
+    return max(finest, float(np.ptp(log.landmark_xy, axis=0).max()) / cells)
+
+
 def _grid(log: Log, cell: float, margin: float) -> _Grid:
     lo = log.landmark_xy.min(0) - margin
     hi = log.landmark_xy.max(0) + margin

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from casm_graph.fit.residuals import observation
+from casm_graph.graph.augmented import theta_from_model
 from casm_graph.graph.robust import mad_scale
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
@@ -31,6 +32,17 @@ def outlying(log: Log, model: Model, poses: np.ndarray, tail: float = TAIL) -> n
     dof = np.isfinite(zr).astype(int) + np.isfinite(zb).astype(int)
     limit = chi2.isf(tail, np.maximum(dof, 1))
     return (dof > 0) & (m2 > limit)
+
+
+def kept(log: Log, model: Model, poses: np.ndarray, effects: list) -> np.ndarray:
+    """The sightings a Gaussian likelihood should score: all but the gross outliers at ``poses`` (one reading
+    thousands of sigmas off would otherwise set the noise levels, or pass for an effect), or all of them when
+    ``effects`` (instances) include an outlier mixture such as ``false_detections``, which models them."""
+    theta = theta_from_model(effects, model)
+    cut = np.cumsum([0] + [len(e.params) for e in effects])
+    if any(e.outlier_fraction(theta[a:b]) > 0 for e, a, b in zip(effects, cut[:-1], cut[1:])):
+        return np.ones(len(log.obs_t), bool)
+    return ~outlying(log, model, np.asarray(poses, float))
 
 
 def prune(log: Log, mask: np.ndarray) -> Log:

@@ -7,7 +7,7 @@ covariate of INTERFACE section 4 attached, from the effect graph of :mod:`casm_g
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import stats
@@ -88,6 +88,7 @@ class Channel:
     raw: np.ndarray               # same in the channel's own unit (m, rad, px)
     time: np.ndarray              # s since the log began (orders the series for whiteness)
     covariates: dict              # name -> (n,) array; NaN where unknown
+    command: np.ndarray | None = field(default=None, repr=False)   # motion: the model's velocity on this axis
 
 
 def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
@@ -101,8 +102,10 @@ def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
     cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "heading": P[:, 2], "speed": np.hypot(v[:, 0], v[:, 1]),
            "turn_rate": v[:, 2], "time_since_action_change": problem.m_ctx["since"],
            "action": log.action.astype(float)}
+    commanded = st.velocities[problem.lay.seg_action]
     for k, name in enumerate(("forward", "lateral", "turn")):
-        out[name] = Channel(name, r.action_e[:, k], r.action_e[:, k] * problem.motion_sigma[:, k], t, cov)
+        out[name] = Channel(name, r.action_e[:, k], r.action_e[:, k] * problem.motion_sigma[:, k], t, cov,
+                            command=commanded[:, k])
     terms = problem.observation_terms(st)
     pred = problem.predictions(st)
     ctx = problem.sensor_context(st)

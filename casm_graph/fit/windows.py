@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from casm_graph.fit.locate import locate
+from casm_graph.fit.locate import grid_cell, locate
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.model import Model
@@ -206,12 +206,6 @@ def chain_headings(costs: list[np.ndarray], positions: list[np.ndarray], moves: 
     for k in range(len(costs) - 2, -1, -1):
         path[k] = back[k][path[k + 1]]
     return path
-
-
-def grid_cell(log: Log, finest: float = 0.1, cells: int = 150) -> float:
-    """Cell of the start's grid smoother: ``finest`` metres, coarser on fields larger than ``cells`` of it
-    (a plaza of beacons 70 m apart would otherwise need half a million cells per knot)."""
-    return max(finest, float(np.ptp(log.landmark_xy, axis=0).max()) / cells)
 
 
 def window_start(log: Log, velocity: np.ndarray, n_poly: int, speed: float,

@@ -149,7 +149,9 @@ MAX_READING = 1e9           # the sensor's unit
 MAX_ANGLE = 2 * math.pi + 1e-6   # rad (bearing, pan: wrapped or in [0, 2 pi))
 MAX_SPEED = 1e3             # m/s and rad/s
 MAX_HEADING = 1e6           # rad (truth may be unwrapped)
-MIN_MEDIAN_STEP = 1e-6      # s between commands
+MIN_MEDIAN_STEP = 1e-4      # s between commands (a command log at over 10 kHz is a scaled time column)
+MAX_MEDIAN_STEP = 600.0     # s: commands held for ten minutes each are not a velocity log
+MAX_GAP = 86400.0           # s: a day without commands is two logs
 
 
 def _show(cell: str) -> str:
@@ -262,12 +264,18 @@ def _increasing(tab: _Table, t: np.ndarray, strict: bool) -> None:
 
 
 def _plausible_step(tab: _Table, t: np.ndarray) -> None:
-    """Times in seconds: command steps far below a microsecond are wrong units or a scaled column."""
+    """Times in seconds: a median command step far outside 0.1 ms-10 min, or a gap of more than a day, is wrong
+    units, a scaled column or two logs in one (and would make the knot layout of a continuous log enormous)."""
     if len(t) > 1:
         step = float(np.median(np.diff(t)))
-        if step < MIN_MEDIAN_STEP:
+        if step < MIN_MEDIAN_STEP or step > MAX_MEDIAN_STEP:
             raise LogError(f"{tab.name}, rows 1-{len(t)}, column 't': the median step between rows is {step:.3g} s; "
-                           f"times must be in seconds (a median step below {MIN_MEDIAN_STEP:g} s is not plausible)")
+                           f"times must be in seconds (a median step outside {MIN_MEDIAN_STEP:g}-{MAX_MEDIAN_STEP:g} s "
+                           f"is not plausible)")
+        i = int(np.argmax(np.diff(t)))
+        if t[i + 1] - t[i] > MAX_GAP:
+            raise LogError(f"{tab.name}, rows {i + 1}-{i + 2}, column 't': a gap of {t[i + 1] - t[i]:.3g} s between "
+                           f"two commands (more than a day); split the log there into two")
 
 
 def _truth_at_poses(truth: np.ndarray, t: np.ndarray) -> np.ndarray | None:

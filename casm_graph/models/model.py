@@ -153,6 +153,8 @@ class Model:
 
 MAX_NESTING = 20            # effects and fit entries deeper than this are not a model's
 MAX_POLY = 7                # reading_poly: degree 6 at most (calibrate's --sensor-degree)
+SIGMA_SPAN = (1e-12, 1e9)   # noise levels: smaller is no noise at float precision, larger no sensor
+COEFFICIENT_SPAN = (0.0, 1e12)     # sensor polynomial coefficients: beyond, the curve overflows
 _ID = re.compile(r"[+-]?[0-9]+", re.ASCII)
 
 
@@ -190,7 +192,8 @@ class _Where:
             self.fail(where, _expected(x, "a JSON object"))
         return x
 
-    def num(self, x, where: str, positive: bool = False, nonneg: bool = False) -> float:
+    def num(self, x, where: str, positive: bool = False, nonneg: bool = False,
+            span: tuple[float, float] | None = None) -> float:
         if isinstance(x, bool) or not isinstance(x, (int, float)):
             self.fail(where, _expected(x, "a number"))
         try:
@@ -203,10 +206,12 @@ class _Where:
             self.fail(where, f"must be positive (got {v:g})")
         if nonneg and v < 0:
             self.fail(where, f"must not be negative (got {v:g})")
+        if span is not None and v != 0 and not span[0] <= abs(v) <= span[1]:
+            self.fail(where, f"is {v:g}, outside what its units allow ({span[0]:g} to {span[1]:g} in size)")
         return v
 
     def vec(self, x, where: str, n: int | None = None, nullable: bool = False, nonneg: bool = False,
-            positive: bool = False, max_len: int | None = None) -> np.ndarray:
+            positive: bool = False, max_len: int | None = None, span: tuple[float, float] | None = None) -> np.ndarray:
         """A list of finite numbers (null read as NaN where ``nullable``) of length ``n`` when given."""
         if not isinstance(x, list):
             self.fail(where, _expected(x, "a list of numbers"))
@@ -215,7 +220,7 @@ class _Where:
         if not x or (max_len is not None and len(x) > max_len):
             self.fail(where, f"must hold 1 to {max_len or 'any'} numbers (got {len(x)})")
         return np.array([np.nan if (v is None and nullable) else
-                         self.num(v, f"{where}[{i}]", positive=positive, nonneg=nonneg)
+                         self.num(v, f"{where}[{i}]", positive=positive, nonneg=nonneg, span=span)
                          for i, v in enumerate(x)], float)
 
     def plain(self, x, where: str, depth: int = 0) -> None:
@@ -325,7 +330,8 @@ def _from_json(cls, data, w: _Where) -> Model:
                                         f"(got {_one_line(repr(channels))[:60]})")
     channels = tuple(c for c in CHANNELS if c in channels)
     reading = "reading" in channels
-    poly = (w.vec(sm.get("reading_poly"), "sensor_model.reading_poly", max_len=MAX_POLY) if reading
+    poly = (w.vec(sm.get("reading_poly"), "sensor_model.reading_poly", max_len=MAX_POLY, span=COEFFICIENT_SPAN)
+            if reading
             else np.zeros(2))      # a bearing-only model has no curve: a placeholder no one reads
     D = len(poly)
     dr = w.vec(sm["distance_range"], "sensor_model.distance_range", n=2, nonneg=True) \
@@ -345,15 +351,15 @@ def _from_json(cls, data, w: _Where) -> Model:
             poly_cov = None                 # written when the fit could not compute it: unknown
         elif not np.allclose(poly_cov, poly_cov.T, rtol=1e-6, atol=0) or np.any(np.diag(poly_cov) < 0):
             w.fail("sensor_model.reading_poly_cov", "must be a symmetric covariance (non-negative diagonal)")
-    motion = (w.vec(data["motion_noise"], "motion_noise", n=3, positive=True)
+    motion = (w.vec(data["motion_noise"], "motion_noise", n=3, positive=True, span=SIGMA_SPAN)
               if "motion_noise" in data else np.array(PAPER_MOTION_NOISE, float))
     effects = _effects(w, data.get("effects", {}))
     fit = w.obj(data.get("fit", {}), "fit")
     w.plain(fit, "fit")
     return cls(action_ids=ids, velocities=vel, reading_poly=poly,
-               reading_sigma=(w.num(sm.get("reading_sigma"), "sensor_model.reading_sigma", positive=True)
+               reading_sigma=(w.num(sm.get("reading_sigma"), "sensor_model.reading_sigma", positive=True, span=SIGMA_SPAN)
                               if reading else PAPER_START_READING_SIGMA),
-               bearing_sigma=(w.num(sm.get("bearing_sigma"), "sensor_model.bearing_sigma", positive=True)
+               bearing_sigma=(w.num(sm.get("bearing_sigma"), "sensor_model.bearing_sigma", positive=True, span=SIGMA_SPAN)
                               if "bearing" in channels else PAPER_START_BEARING_SIGMA),
                channels=channels,
                motion_noise=motion, distance_range=(float(dr[0]), float(dr[1])), velocity_std=vstd,

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from casm_graph.analysis.before_after import compare, load_before
 from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continuous
 from casm_graph.analysis.diagnosis import Diagnosis
 from casm_graph.analysis.diagnosis import diagnose as diagnose_table
@@ -41,13 +42,17 @@ def check_compatible(log: Log, model: Model, source: str) -> None:
 
 
 def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
-             progress=None, poses: np.ndarray | None = None, client=None) -> Diagnosis:
+             progress=None, poses: np.ndarray | None = None, client=None, before=None) -> Diagnosis:
     """Where ``calibration`` fails on ``log`` and which effect is missing; in memory (``save`` writes DIAG).
 
     ``calibration`` is a :class:`Calibration` (its trajectory is the start) or a :class:`Model` (then
     ``poses`` if given, else a fresh smoother's). ``extra_effects``: user effect classes to consider;
-    ``client``: a Dask ``distributed.Client`` to fit the candidates and folds on (default: a local process pool).
+    ``client``: a Dask ``distributed.Client`` to fit the candidates and folds on (default: a local process pool);
+    ``before``: an earlier diagnosis of the log (a :class:`Diagnosis`, its DIAG directory, diagnosis.json or its dict) to
+    show the change against (``before_after`` in diagnosis.json, a table and figure in the report).
     """
+    if before is not None and not isinstance(before, (Diagnosis, dict)):
+        before = load_before(before)                 # read first: a bad path fails before the computation
     if isinstance(calibration, Calibration):
         if isinstance(calibration.model, dict):
             raise LogError(f"diagnose: the {calibration.options.method} models of a 1-D log have no diagnosis")
@@ -80,18 +85,21 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
                               candidates=candidates, client=client)
     diag.log, diag.write_report = log, report.diagnosis
+    if before is not None:
+        diag.before_after = compare(before.to_json() if isinstance(before, Diagnosis) else before, diag.to_json())
     return diag
 
 
 def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects=(), candidates=None,
-        force: bool = False, client=None) -> Diagnosis:
+        force: bool = False, client=None, before=None) -> Diagnosis:
     """Diagnose the model at ``model_path`` on the bundle at ``log_dir``; write DIAG to ``out`` (all or nothing)."""
-    checked_out(out, force, inputs=[log_dir, model_path])
+    checked_out(out, force, inputs=[log_dir, model_path] + ([before] if before is not None else []))
+    before = load_before(before) if before is not None else None
     model_path = Path(model_path)
     model = Model.load(model_path)
     log = load(log_dir)
     diag = diagnose(log, model, extra_effects=extra_effects, candidates=candidates, workers=workers,
-                    progress=progress, poses=_trajectory_csv(log, model_path), client=client)
+                    progress=progress, poses=_trajectory_csv(log, model_path), client=client, before=before)
     if progress is not None:
         progress.stage("report", None)
     diag.save(out, force=force)

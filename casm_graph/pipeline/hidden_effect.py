@@ -61,6 +61,7 @@ class Trial:
     error_after: dict | None = None
     verdict_after: str | None = None
     fitted: dict = field(default_factory=dict)
+    change: dict | None = None          # the second diagnosis against the first (analysis.before_after)
     truth: dict = field(default_factory=dict)
     seconds: float = 0.0
 
@@ -95,10 +96,11 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
         cls = effect_class if effect_class is not None and named == effect_class.name else named
         _, fit2 = calibrate_run.run(w / "log", w / "run_fixed", effects=(cls,), seed=seed)
         diag2 = diagnose_run.run(w / "log", w / "run_fixed" / "model.json", w / "diag_fixed", workers=workers,
-                                 extra_effects=extra, candidates=candidates)
+                                 extra_effects=extra, candidates=candidates, before=w / "diag")
         trial.error_after = model_error(fit2.model, truth)
         trial.verdict_after = diag2.verdict
         trial.fitted = fit2.model.effects
+        trial.change = diag2.before_after
     trial.seconds = time.perf_counter() - t0
     (w / "trial.json").write_text(json.dumps(trial.to_json(), indent=2, default=float))
     return trial

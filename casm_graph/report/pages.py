@@ -10,6 +10,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
+from casm_graph.analysis.correlation import strongest
 from casm_graph.fit import residuals
 from casm_graph.fit.methods.base import Fit
 from casm_graph.graph import table as G
@@ -321,6 +322,87 @@ def time_panel(diag):
     return fig
 
 
+def correlation_figure(diag):
+    """resid-style panels: each motion axis's residual against the change of its commanded velocity, and the
+    sightings' residual autocorrelation, each with its 99 % band for white residuals."""
+    corr = diag.correlation
+    fig, axes = subplots(1, 2, figsize=(13, 3.4))
+    for ax, kind in zip(axes, ("cross", "auto")):
+        band = 0.0
+        for ch, rec in corr.items():
+            if rec["series"] == kind:
+                ax.plot(np.asarray(rec["lags"]) * rec["step_s"], rec["values"], ".-", ms=3, lw=1, label=ch)
+                band = max(band, rec["band"])
+        ax.axhspan(-band, band, color="0.85", zorder=0, label="99 % band (white)")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.legend(fontsize=7)
+    axes[0].set(xlabel="lag (s): the velocity changed this long before the residual", ylabel="correlation",
+                title="motion residual vs change of the model's velocity on its axis")
+    axes[1].set(xlabel="lag (s)", ylabel="autocorrelation", title="sighting residual autocorrelation")
+    fig.tight_layout()
+    return fig
+
+
+def before_after_figure(diag):
+    """Before and after: each channel's residual RMS (relative to before) and the earlier diagnosis' strongest
+    covariate's share of the residual variance then and now."""
+    rows = diag.before_after["channels"]
+    names = [ch for ch, r in rows.items() if None not in r["rms_raw"]]
+    fig, axes = subplots(1, 2, figsize=(13, 3.4))
+    x = np.arange(len(names))
+    ratio = [rows[ch]["rms_raw"][1] / rows[ch]["rms_raw"][0] if rows[ch]["rms_raw"][0] else np.nan for ch in names]
+    axes[0].bar(x, ratio, color=["0.6" if abs(r - 1) < 0.02 else "C2" if r < 1 else "C3" for r in ratio])
+    axes[0].axhline(1, color="k", lw=0.8)
+    axes[0].set_xticks(x, names)
+    axes[0].set(ylabel="residual RMS, after / before", title="error per channel (below 1: it fell; grey: within 2 %)")
+    cov = [(ch, rows[ch]["covariate"]) for ch in names if rows[ch].get("covariate")
+           and None not in rows[ch]["covariate"]["strength"]]
+    xs = np.arange(len(cov))
+    axes[1].bar(xs - 0.2, [100 * c["strength"][0] for _, c in cov], 0.4, label="before")
+    axes[1].bar(xs + 0.2, [100 * c["strength"][1] for _, c in cov], 0.4, label="after")
+    axes[1].set_xticks(xs, [f"{ch}\n{c['kind']} vs {c['name']}" for ch, c in cov], fontsize=7)
+    axes[1].set(ylabel="% of residual variance", title="the earlier strongest dependence, per channel")
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def _before_after_html(diag) -> str:
+    ba = diag.before_after
+    if not ba:
+        return ""
+    e = html.escape
+    (v0, v1), (l0, l1), (s0, s1) = ba["verdict"], ba["log_likelihood"], ba["sightings_set_aside"]
+    fmt = (lambda v: "" if v is None else f"{v:.4g}")
+    rows = "".join(
+        f"<tr><td style='text-align:left'>{e(ch)}</td><td>{fmt(r['rms'][0])} &rarr; {fmt(r['rms'][1])}</td>"
+        f"<td>{fmt(r['rms_raw'][0])} &rarr; {fmt(r['rms_raw'][1])}</td>"
+        + (f"<td style='text-align:left'>{e(r['covariate']['kind'])} vs {e(r['covariate']['name'])}: "
+           f"{fmt(r['covariate']['strength'][0])} &rarr; {fmt(r['covariate']['strength'][1])}</td>"
+           if r.get("covariate") else "<td></td>") + "</tr>"
+        for ch, r in ba["channels"].items())
+    return (f"<h2>Before and after</h2><p>Against the earlier diagnosis: verdict <code>{e(str(v0))}</code> &rarr; "
+            f"<code>{e(str(v1))}</code>; effects {e(', '.join(ba['effects'][0]) or 'none')} &rarr; "
+            f"{e(', '.join(ba['effects'][1]) or 'none')}; refitted log-likelihood {fmt(l0)} &rarr; {fmt(l1)} "
+            f"(comparable when the same sightings were set aside: {s0} &rarr; {s1}).</p>"
+            "<table><tr><th>channel</th><th>whitened RMS</th><th>raw RMS</th><th>earlier strongest covariate "
+            f"(omega squared)</th></tr>{rows}</table>{png(before_after_figure(diag))}")
+
+
+def _failure_panels(diag) -> str:
+    """Covariate panels and residual correlation, the one with the stronger structure first."""
+    parts = [("covariates", png(covariate_panels(diag)))]
+    if diag.correlation:
+        ch, ratio = strongest(diag.correlation)
+        top = max((c["strength"] for r in diag.channels.values() for c in r["covariates"]), default=0.0)
+        text = (f"<p>Residual correlation over time (strongest: {html.escape(ch)}, {ratio:.1f} times the 99 % "
+                f"band of white residuals).</p>{png(correlation_figure(diag))}")
+        # a dependence on a covariate explaining under 1 % of the variance is weaker than time structure
+        # well outside its band: then time structure comes first
+        parts.insert(0 if (top < 0.01 and ratio > 2) else 1, ("correlation", text))
+    return "".join(p for _, p in parts)
+
+
 def diagnosis(path: Path, log: Log, diag) -> None:
     """DIAG/report.html: the verdict in words, the tables, then the panels strongest first."""
     e = html.escape
@@ -344,7 +426,8 @@ Strength: omega squared, the share of residual variance a covariate explains (me
 time blocks hidden from the fit.</p>
 <table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>fitted</th><th>physics</th></tr>{cands}</table>
 {f'<p>Not applicable to this log:</p><ul>{skipped}</ul>' if skipped else ''}
-<h2>Where the model fails</h2>{png(covariate_panels(diag))}
+{_before_after_html(diag)}
+<h2>Where the model fails</h2>{_failure_panels(diag)}
 <h2>On the field</h2>{png(field_heatmap(diag))}
 <h2>Per landmark and per action</h2>{png(group_panels(diag))}
 <h2>Over time</h2>{png(time_panel(diag))}
