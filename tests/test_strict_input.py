@@ -8,7 +8,10 @@ model files for diagnose, uncertainty and compare. model.json is strict JSON on 
 import csv
 import json
 import math
+import resource
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -162,6 +165,47 @@ def test_times_scaled_to_nothing(bundle, tmp_path, capsys):
         scale(table)
         put(d / name, table)
     calibrate_rejects(capsys, d, tmp_path, "commands.csv", "column 't'", "median step", "seconds")
+
+
+@pytest.mark.parametrize("factor,words", [(5e7, "median step"), (1e-4, "median step")])
+def test_times_scaled_within_the_bound(bundle, tmp_path, capsys, factor, words):
+    """Times inside the magnitude bound but with implausible steps (a month, or microseconds, per command)."""
+    def scale(table):
+        j = table[0].index("t")
+        for r in table[1:]:
+            r[j] = repr(float(r[j]) * factor)
+
+    d = edited(bundle, tmp_path / "log", "commands.csv", scale)
+    for name in ("observations.csv", "truth.csv"):
+        table = rows(d / name)
+        scale(table)
+        put(d / name, table)
+    calibrate_rejects(capsys, d, tmp_path, "commands.csv", "column 't'", words)
+
+
+def test_a_gap_of_more_than_a_day_splits_the_log(bundle, tmp_path, capsys):
+    def gap(table):
+        j = table[0].index("t")
+        half = len(table) // 2
+        for r in table[half:]:
+            r[j] = repr(float(r[j]) + 1e9)
+
+    d = edited(bundle, tmp_path / "log", "commands.csv", gap)
+    calibrate_rejects(capsys, d, tmp_path, "commands.csv", "column 't'", "gap", "split the log")
+
+
+def test_a_landmark_far_off_does_not_take_all_memory(bundle, tmp_path):
+    """A landmark 900 km away (inside the position bound) once made the start's grid smoother ask for 22 GB:
+    under a 3 GB address-space limit calibrate now ends in a model or one line."""
+    def far(table):
+        table[1][table[0].index("x")] = "9e5"
+
+    d = edited(bundle, tmp_path / "log", "landmarks.csv", far)
+    limit = (lambda: resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30)))
+    r = subprocess.run([sys.executable, "-m", "casm_graph.cli", "calibrate", str(d), "--out", str(tmp_path / "run"),
+                        "--quiet"], capture_output=True, text=True, preexec_fn=limit, timeout=600)
+    assert r.returncode in (0, 2), r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and "MemoryError" not in r.stderr
 
 
 # ----------------------------------------------------------------------------- accepted, then a crash
@@ -355,6 +399,10 @@ BAD_MODELS = [
     ("effect_param_null", _mutate(lambda d: d["effects"].__setitem__("actuator_lag", {"tau": None})),
      "effects.actuator_lag.tau"),
     ("empty_file", lambda m: "", "not valid JSON"),
+    ("denormal_sigma", _mutate(lambda d: d["sensor_model"].__setitem__("reading_sigma", 1e-320)), "units allow"),
+    ("huge_sigma", _mutate(lambda d: d["sensor_model"].__setitem__("reading_sigma", 1e300)), "units allow"),
+    ("huge_coefficient", _mutate(lambda d: d["sensor_model"].__setitem__("reading_poly", [1e308, 1e308, 0, 0])),
+     "units allow"),
 ]
 
 
