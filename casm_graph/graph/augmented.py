@@ -314,14 +314,15 @@ class EffectProblem:
         Jp = np.concatenate([r.reading_J[0], r.bearing_J])
         Jt = np.concatenate([r.reading_J[1], r.bearing_Jt])
         eo = np.concatenate([r.reading_e, r.bearing_e])
-        np.add.at(D, knot, np.einsum("ni,nj->nij", Jp, Jp))
-        np.add.at(gp, knot, Jp * eo[:, None])
+        at = sp.csr_matrix((np.ones(len(knot)), (knot, np.arange(len(knot)))), shape=(K, len(knot)))
+        D += (at @ np.einsum("ni,nj->nij", Jp, Jp).reshape(len(knot), 9)).reshape(K, 3, 3)   # per pose: sums over
+        gp += at @ (Jp * eo[:, None])                                                        # its sightings
         if poses_only:
             return D, B, np.zeros((K, 3, 0)), gp, np.zeros((0, 0)), np.zeros(0)
         F = np.zeros((K, 3, n))
         F[:-1] += np.einsum("nki,nkj->nij", Ha, Ht)
         F[1:] += np.einsum("nki,nkj->nij", Hb, Ht)
-        np.add.at(F, knot, Jp[:, :, None] * Jt[:, None, :])
+        F += (at @ (Jp[:, :, None] * Jt[:, None, :]).reshape(len(knot), 3 * n)).reshape(K, 3, n)
         At = Ht.reshape(-1, n)
         Htt = At.T @ At + Jt.T @ Jt + np.diag(r.prior_J ** 2)
         gt = At.T @ e.ravel() + Jt.T @ eo + r.prior_J * r.prior_e
@@ -438,7 +439,12 @@ class EffectProblem:
 def estimate_noise(problem: EffectProblem, st: AState, model: Model, seed: int = 0) -> tuple[Model, np.ndarray]:
     """Noise levels (as :func:`methods.graph.estimate_noise`) and the noise-only effect parameters."""
     A, e, groups = problem.jacobian(st)
-    traces = noisemod.hat_traces(A, groups, seed=seed)
+    D, B, F, _, Htt, _ = problem.normal_equations(st)
+    try:        # the chain's own elimination: linear in the poses (SuperLU's minimum-degree order is not)
+        lu = chain.ArrowFactor(D, B, F, Htt)
+    except np.linalg.LinAlgError:
+        lu = None
+    traces = noisemod.hat_traces(A, groups, seed=seed, lu=lu)
     wsum = {"reading": float(np.sum(problem.weight[problem.r_idx])),
             "bearing": float(np.sum(problem.weight[problem.b_idx]))}
     new = noisemod.group_scales(e, groups, traces, counts=wsum)

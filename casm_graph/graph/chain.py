@@ -92,3 +92,29 @@ def solve_arrow(D, B, F, gp, Htt, gt, lam):
     dt = -np.linalg.solve(Sc, gt - Ff.T @ Xf[:, 0])
     dp = -(Xs[:, :, 0] + Xs[:, :, 1:] @ dt)
     return dp, dt
+
+
+class ArrowFactor:
+    """H^-1 for H = [[Hpp, F], [F^T, Htt]] with Hpp block tridiagonal (blocks ``D``, ``B``): the pose chain
+    eliminated first, the parameters' dense Schur complement factored once. ``solve`` takes right-hand sides
+    ordered as the effect graph's columns (3 per pose, then the parameters), in time linear in the poses."""
+
+    def __init__(self, D, B, F, Htt):
+        self.D, self.B = np.ascontiguousarray(D), np.ascontiguousarray(B)
+        self.K, self.n = D.shape[0], F.shape[2]
+        self.F = F.reshape(-1, self.n)
+        self.X = _chain_solve(self.D, self.B, np.ascontiguousarray(F), 0.0).reshape(-1, self.n)   # Hpp^-1 F
+        self.Sc = np.linalg.cholesky(Htt - self.F.T @ self.X) if self.n else None
+        if not (np.all(np.isfinite(self.X)) and (self.Sc is None or np.all(np.isfinite(self.Sc)))):
+            raise np.linalg.LinAlgError("the pose chain is singular")
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        b = np.asarray(b, float)
+        m = b.shape[1]
+        bp, bt = b[:3 * self.K], b[3 * self.K:]
+        y = _chain_solve(self.D, self.B, np.ascontiguousarray(bp.reshape(self.K, 3, m)), 0.0).reshape(-1, m)
+        if not self.n:
+            return y
+        z = np.linalg.solve(self.Sc, bt - self.F.T @ y)
+        dt = np.linalg.solve(self.Sc.T, z)
+        return np.concatenate([y - self.X @ dt, dt])
