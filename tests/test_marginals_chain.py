@@ -14,7 +14,8 @@ from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods import METHODS
 from casm_graph.fit.methods.graph import world_std
 from casm_graph.fit.outliers import prune
-from casm_graph.fit.solve import RIDGES, arrow_blocks, arrow_inverse, arrow_solver, chain_marginals, marginals
+from casm_graph.fit.solve import RIDGES, chain_marginals, marginals
+from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver
 from casm_graph.graph import noise
 from casm_graph.graph import table as G
 from casm_graph.models.model import paper_start

@@ -1,18 +1,25 @@
-"""Marginal covariances of a pose chain with the parameters held fixed, by block-tridiagonal selected inversion.
+"""Pose chains: the Gauss-Newton information of a log's graph, eliminated along the chain in time linear in it.
 
-With the table and polynomial fixed, action factors link only consecutive poses and sightings
-touch one pose each, so the Gauss-Newton information matrix is block tridiagonal (3x3 blocks).
-A forward block elimination and a backward pass (the Rauch-Tung-Striebel recursion) give every
-pose's covariance, the cross-covariance of consecutive poses and log det H in O(K), where one
-``gtsam.Marginals.jointMarginalCovariance`` call per pair costs milliseconds.
-Coordinates are GTSAM's Pose2 tangent (body-frame dx, dy, dtheta), as in the factors.
+Action factors link only consecutive poses and sightings touch one pose each, so the poses' information
+is block tridiagonal (3x3 blocks); the model's parameters (table, polynomial, effects) add one dense
+block coupled to every pose, an arrow. A forward block elimination and a backward pass (the
+Rauch-Tung-Striebel / Takahashi recursion) give every pose's covariance and log det H in O(K)
+(:func:`select_inverse`); with the parameters, :class:`ArrowSolve` eliminates the chain once and
+factors the parameters' Schur complement, answering H^-1 b (the noise step's hat traces) and the
+marginals (:func:`arrow_inverse`) as a sparse LU would, in O(K) memory. Coordinates are GTSAM's Pose2
+tangent (body-frame dx, dy, dtheta), as in the factors.
 """
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
+from scipy.linalg import solve_triangular
 
 from casm_graph.graph.table import Problem, State
+
+PIVOT_TOL = 1e-12                   # a pivot below this share of its variable's own information counts as singular
+CHUNK_DOUBLES = 4_000_000           # right-hand sides of the chain solves go through in blocks of about this size
 
 
 def information_blocks(problem: Problem, st: State) -> tuple[np.ndarray, np.ndarray]:
@@ -94,27 +101,208 @@ def solve_arrow(D, B, F, gp, Htt, gt, lam):
     return dp, dt
 
 
-class ArrowFactor:
-    """H^-1 for H = [[Hpp, F], [F^T, Htt]] with Hpp block tridiagonal (blocks ``D``, ``B``): the pose chain
-    eliminated first, the parameters' dense Schur complement factored once. ``solve`` takes right-hand sides
-    ordered as the effect graph's columns (3 per pose, then the parameters), in time linear in the poses."""
 
-    def __init__(self, D, B, F, Htt):
-        self.D, self.B = np.ascontiguousarray(D), np.ascontiguousarray(B)
-        self.K, self.n = D.shape[0], F.shape[2]
-        self.F = F.reshape(-1, self.n)
-        self.X = _chain_solve(self.D, self.B, np.ascontiguousarray(F), 0.0).reshape(-1, self.n)   # Hpp^-1 F
-        self.Sc = np.linalg.cholesky(Htt - self.F.T @ self.X) if self.n else None
-        if not (np.all(np.isfinite(self.X)) and (self.Sc is None or np.all(np.isfinite(self.Sc)))):
-            raise np.linalg.LinAlgError("the pose chain is singular")
+@njit(cache=True)
+def _chain_factor(D, B, ridge, tol):
+    """Forward block elimination of the block-tridiagonal H (diagonal D + ridge I, upper blocks B).
+
+    Returns the inverse pivots S_i^-1, G_i = B_{i-1}^T S_{i-1}^-1 (G_0 unused) and False when a pivot
+    is not positive definite (below ``tol`` times its variable's own information).
+    """
+    K = D.shape[0]
+    Sinv = np.empty_like(D)
+    G = np.zeros_like(D)
+    S = np.empty((3, 3))
+    for i in range(K):
+        for a in range(3):
+            for b in range(3):
+                S[a, b] = D[i, a, b]
+            S[a, a] += ridge
+        if i > 0:
+            for a in range(3):
+                for b in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        acc += B[i - 1, k, a] * Sinv[i - 1, k, b]
+                    G[i, a, b] = acc
+            for a in range(3):
+                for b in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        acc += G[i, a, k] * B[i - 1, k, b]
+                    S[a, b] -= acc
+        # S = L diag(d) L^T with L unit lower; S^-1 = M^T diag(1/d) M with M = L^-1
+        d0 = S[0, 0]
+        if not d0 > tol * (D[i, 0, 0] + ridge):
+            return Sinv, G, False
+        l10, l20 = 0.5 * (S[1, 0] + S[0, 1]) / d0, 0.5 * (S[2, 0] + S[0, 2]) / d0
+        d1 = S[1, 1] - l10 * l10 * d0
+        if not d1 > tol * (D[i, 1, 1] + ridge):
+            return Sinv, G, False
+        l21 = (0.5 * (S[2, 1] + S[1, 2]) - l20 * l10 * d0) / d1
+        d2 = S[2, 2] - l20 * l20 * d0 - l21 * l21 * d1
+        if not d2 > tol * (D[i, 2, 2] + ridge):
+            return Sinv, G, False
+        m10, m20, m21 = -l10, l10 * l21 - l20, -l21
+        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+        Sinv[i, 0, 0] = i0 + m10 * m10 * i1 + m20 * m20 * i2
+        Sinv[i, 1, 1] = i1 + m21 * m21 * i2
+        Sinv[i, 2, 2] = i2
+        Sinv[i, 0, 1] = Sinv[i, 1, 0] = m10 * i1 + m20 * m21 * i2
+        Sinv[i, 0, 2] = Sinv[i, 2, 0] = m20 * i2
+        Sinv[i, 1, 2] = Sinv[i, 2, 1] = m21 * i2
+    return Sinv, G, True
+
+
+@njit(cache=True)
+def _chain_apply(Sinv, G, B, R):
+    """H^-1 R in place for the factored block-tridiagonal H and right-hand sides R (K, 3, m)."""
+    K, _, m = R.shape
+    t = np.empty((3, m))
+    for i in range(1, K):
+        for a in range(3):
+            for k in range(3):
+                g = G[i, a, k]
+                for c in range(m):
+                    R[i, a, c] -= g * R[i - 1, k, c]
+    for i in range(K - 1, -1, -1):
+        for a in range(3):
+            for c in range(m):
+                t[a, c] = R[i, a, c]
+        if i < K - 1:
+            for a in range(3):
+                for k in range(3):
+                    b = B[i, a, k]
+                    for c in range(m):
+                        t[a, c] -= b * R[i + 1, k, c]
+        for a in range(3):
+            for c in range(m):
+                R[i, a, c] = Sinv[i, a, 0] * t[0, c] + Sinv[i, a, 1] * t[1, c] + Sinv[i, a, 2] * t[2, c]
+
+
+@njit(cache=True)
+def _chain_cov(Sinv, B):
+    """Diagonal blocks of the block-tridiagonal H's inverse (the Takahashi / RTS backward recursion)."""
+    K = Sinv.shape[0]
+    cov = np.empty_like(Sinv)
+    cov[K - 1] = Sinv[K - 1]
+    P = np.empty((3, 3))
+    Q = np.empty((3, 3))
+    for i in range(K - 2, -1, -1):
+        for a in range(3):              # P = S_i^-1 B_i
+            for b in range(3):
+                P[a, b] = Sinv[i, a, 0] * B[i, 0, b] + Sinv[i, a, 1] * B[i, 1, b] + Sinv[i, a, 2] * B[i, 2, b]
+        for a in range(3):              # Q = P cov_{i+1}
+            for b in range(3):
+                Q[a, b] = P[a, 0] * cov[i + 1, 0, b] + P[a, 1] * cov[i + 1, 1, b] + P[a, 2] * cov[i + 1, 2, b]
+        for a in range(3):
+            for b in range(a, 3):
+                v = Sinv[i, a, b] + Q[a, 0] * P[b, 0] + Q[a, 1] * P[b, 1] + Q[a, 2] * P[b, 2]
+                cov[i, a, b] = v
+                cov[i, b, a] = v
+    return cov
+
+
+@njit(cache=True)
+def _add_outer(cov, Z):
+    """cov[i] += Z[i] Z[i]^T for every pose i."""
+    K, _, m = Z.shape
+    for i in range(K):
+        for a in range(3):
+            for b in range(a, 3):
+                acc = 0.0
+                for c in range(m):
+                    acc += Z[i, a, c] * Z[i, b, c]
+                cov[i, a, b] += acc
+                if b != a:
+                    cov[i, b, a] += acc
+
+
+def arrow_blocks(A: sp.spmatrix, n_poses: int) -> dict:
+    """Blocks of the information matrix H = A^T A of a Jacobian whose first 3 ``n_poses`` columns are a pose
+    chain (each factor touching at most two consecutive poses) and the rest one dense parameter block."""
+    H = (A.T @ A).tocsr()
+    m, K = 3 * n_poses, n_poses
+    Hpp = H[:m, :m].tocoo()
+    rb, cb = Hpp.row // 3, Hpp.col // 3
+    if np.any(np.abs(rb - cb) > 1):
+        raise ValueError("not a pose chain: a factor joins poses more than one step apart")
+    D, B = np.zeros((K, 3, 3)), np.zeros((max(K - 1, 0), 3, 3))
+    on, up = rb == cb, cb == rb + 1
+    D[rb[on], Hpp.row[on] % 3, Hpp.col[on] % 3] = Hpp.data[on]
+    B[rb[up], Hpp.row[up] % 3, Hpp.col[up] % 3] = Hpp.data[up]
+    F = H[:m, m:]
+    return {"D": D, "B": B, "F": F.tocsr(), "Fc": F.tocsc(), "Htt": H[m:, m:].toarray(),
+            "top": float(H.diagonal().max(initial=0.0))}
+
+
+class ArrowSolve:
+    """The block elimination of H + ridge I (H from :func:`arrow_blocks`): the pose chain once, then the
+    Schur complement S = Htt - F^T Hpp^-1 F of the parameters (Cholesky). ``solve`` answers H^-1 b as a
+    sparse LU of H would (the noise step's hat traces), in O(K) memory. Raises ``numpy.linalg.LinAlgError``
+    when H + ridge I is not positive definite.
+    """
+
+    def __init__(self, blocks: dict, ridge: float = 0.0):
+        self.B, self.F, Htt = blocks["B"], blocks["F"], blocks["Htt"]
+        self.K, self.n = blocks["D"].shape[0], Htt.shape[0]
+        self.c = max(1, CHUNK_DOUBLES // (3 * self.K))          # right-hand sides per chain sweep
+        self.Sinv, self.G, ok = _chain_factor(blocks["D"], self.B, ridge, PIVOT_TOL)
+        if not ok:
+            raise np.linalg.LinAlgError("pose chain not positive definite")
+        S = Htt + ridge * np.eye(self.n)
+        Fc = blocks["Fc"]
+        for j in range(0, self.n, self.c):
+            S[:, j:j + self.c] -= self.F.T @ self.chain_solve(Fc[:, j:j + self.c].toarray())
+        S = 0.5 * (S + S.T)
+        self.L = np.linalg.cholesky(S) if self.n else np.zeros((0, 0))
+        if not np.all(np.diag(self.L) ** 2 > PIVOT_TOL * (np.diag(Htt) + ridge)):
+            raise np.linalg.LinAlgError("parameter block not positive definite")
+
+    def chain_solve(self, R: np.ndarray) -> np.ndarray:
+        """Hpp^-1 R for R (3K, m) over the pose columns only."""
+        X = np.array(R, dtype=float, order="C").reshape(self.K, 3, -1)
+        _chain_apply(self.Sinv, self.G, self.B, X)
+        return X.reshape(3 * self.K, -1)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        b = np.asarray(b, float)
-        m = b.shape[1]
-        bp, bt = b[:3 * self.K], b[3 * self.K:]
-        y = _chain_solve(self.D, self.B, np.ascontiguousarray(bp.reshape(self.K, 3, m)), 0.0).reshape(-1, m)
-        if not self.n:
-            return y
-        z = np.linalg.solve(self.Sc, bt - self.F.T @ y)
-        dt = np.linalg.solve(self.Sc.T, z)
-        return np.concatenate([y - self.X @ dt, dt])
+        """H^-1 b for b (3K + n,) or (3K + n, m)."""
+        b2 = np.asarray(b, float).reshape(len(b), -1)
+        m = 3 * self.K
+        out = np.empty_like(b2)
+        for j in range(0, b2.shape[1], self.c):
+            bp, bt = b2[:m, j:j + self.c], b2[m:, j:j + self.c]
+            xt = bt - self.F.T @ self.chain_solve(bp)
+            if self.n:
+                xt = solve_triangular(self.L.T, solve_triangular(self.L, xt, lower=True), lower=False)
+            out[:m, j:j + self.c] = self.chain_solve(bp - self.F @ xt)
+            out[m:, j:j + self.c] = xt
+        return out.reshape(np.shape(b))
+
+
+def arrow_inverse(blocks: dict, ridge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pose covariances (K, 3, 3) and the parameter block's covariance of H + ridge I, from :func:`arrow_blocks`.
+
+    The chain is eliminated once (O(K)); the parameters' covariance is the inverse of their Schur
+    complement S = L L^T, and each pose's adds Z_i Z_i^T (Z = Hpp^-1 F L^-T) to its covariance within the
+    chain (the Takahashi recursion). Right-hand sides go through in column blocks, so memory stays O(K).
+    Raises ``numpy.linalg.LinAlgError`` when H + ridge I is not positive definite.
+    """
+    a = ArrowSolve(blocks, ridge)
+    cov = _chain_cov(a.Sinv, a.B)
+    if a.n == 0:
+        return cov, np.zeros((0, 0))
+    M = solve_triangular(a.L, np.eye(a.n), lower=True).T          # S^-1 = M M^T
+    for j in range(0, a.n, a.c):
+        Z = a.chain_solve(np.asarray(a.F @ M[:, j:j + a.c])).reshape(a.K, 3, -1)
+        _add_outer(cov, Z)
+    return cov, M @ M.T
+
+
+def arrow_solver(A: sp.spmatrix, n_poses: int) -> ArrowSolve | None:
+    """:class:`ArrowSolve` of the whitened Jacobian ``A`` (poses first), or None when A^T A is singular or not
+    a chain (the caller's sparse LU then answers)."""
+    try:
+        return ArrowSolve(arrow_blocks(A, n_poses))
+    except (np.linalg.LinAlgError, ValueError):
+        return None

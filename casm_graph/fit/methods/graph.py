@@ -26,9 +26,10 @@ from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
-from casm_graph.fit.solve import arrow_solver, chain_marginals, least_squares
+from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import noise
+from casm_graph.graph.chain import arrow_solver
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log
 from casm_graph.models.effects.false_detections import FalseDetections, inlier_weights, outlier_density
