@@ -48,3 +48,13 @@ def test_a_wild_reading_does_not_set_the_posterior_noise_levels():
         set_aside.append(ml.set_aside())
     assert set_aside[1] >= 1 and set_aside[1] <= set_aside[0] + 1, set_aside
     np.testing.assert_allclose(modes[1], modes[0], rtol=0.10)
+
+
+def test_graph_em_sets_wild_readings_aside_too():
+    """graph-EM prunes gross outliers after the shared coarse start, as graph does: five readings multiplied by
+    10,000 once put its reading sigma at 6,056 (the true one is 1)."""
+    log, truth = simulate("aibo", minutes=3, seed=0)
+    wild = corrupt(log, "wild5", np.random.default_rng(7))
+    fit = calibrate(wild, method="graph-em", seed=0)
+    assert fit.model.fit["outliers_pruned"] >= 5
+    assert 0.9 < fit.model.reading_sigma < 1.1, fit.model.reading_sigma

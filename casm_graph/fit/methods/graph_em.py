@@ -16,6 +16,7 @@ import numpy as np
 
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.methods.graph import coarse_start
+from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain
 from casm_graph.graph import table as G
@@ -159,6 +160,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     t0 = time.perf_counter()
     co = coarse_start(log, start, seed, progress)
     model, poses = co.model, co.poses
+    pruned = outlying(log, model, poses)          # gross outliers out, as graph prunes them: the M-step is Gaussian
+    log = prune(log, pruned)
     lay = G.layout(log, model, 1)
     history = {"log_likelihood": [], "velocity_rms": [], "seconds": [], "squarem": []}
     progress.stage("graph-em", max_iterations)
@@ -203,7 +206,9 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[~np.isnan(log.obs_reading)]
     model = model.with_(distance_range=(float(d.min()), float(d.max())),
                         fit={"method": "graph-em", "iterations": it + 1, "seconds": round(time.perf_counter() - t0, 3),
-                             "log_likelihood": float(ll), "converged": converged})
+                             "log_likelihood": float(ll), "converged": converged,
+                             "outliers_pruned": int(pruned.sum())})
     lls = history["log_likelihood"]
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=[-x for x in lls], stages=["graph-em"] * len(lls),
-               iterations=it + 1, converged=converged, log_likelihood=float(ll), notes={"history": history})
+               iterations=it + 1, converged=converged, log_likelihood=float(ll),
+               notes={"history": history, "outliers_pruned": np.flatnonzero(pruned).tolist()})
