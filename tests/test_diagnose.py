@@ -218,3 +218,21 @@ def test_before_after_compares_channels_and_refuses_a_bad_file(tmp_path):
             load_before(tmp_path / "bad.json")
     with pytest.raises(LogError, match="no diagnosis.json"):
         load_before(tmp_path / "missing")
+
+
+def test_lookalikes_are_named_with_what_would_separate_them():
+    """Supported candidates within 6 of the verdict's delta BIC form a look-alike group (the verdict first), said
+    in words with each effect's ``distinguished_by``; a candidate strongly behind, or not supported, is not in it."""
+    sep = {n: REGISTRY[n].distinguished_by for n in ("actuator_lag", "camera_latency", "battery_fade")}
+    cands = [cand("camera_latency", -169.95, 98.01), cand("actuator_lag", -168.91, 98.68),
+             cand("battery_fade", -120, 40)]
+    v, _ = D.verdict(cands, [])
+    groups = D.lookalikes(cands, v, sep)
+    assert v == "actuator_lag" and [g["effects"] for g in groups] == [["actuator_lag", "camera_latency"]]
+    text = " ".join(D.lookalike_words(groups))
+    assert "camera_latency explains the data about as well as actuator_lag" in text
+    assert sep["camera_latency"] in text and sep["actuator_lag"] in text
+    assert D.lookalikes([cand("actuator_lag", -169, 98), cand("camera_latency", -150, 90)], "actuator_lag", sep) == []
+    assert D.lookalikes([cand("actuator_lag", -12, 9), cand("camera_latency", -8, 9)], "actuator_lag", sep) == []
+    assert D.lookalikes(cands, "none", sep) == []
+    assert all(REGISTRY[n].distinguished_by for n in REGISTRY)      # every catalog effect says what separates it

@@ -19,7 +19,8 @@ import numpy as np
 
 import factors
 from casm_graph.analysis.correlation import correlation
-from casm_graph.analysis.diagnosis import Candidate, Diagnosis, channel_report, structures, verdict
+from casm_graph.analysis.diagnosis import (Candidate, Diagnosis, channel_report, lookalike_words, lookalikes,
+                                           structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
@@ -110,10 +111,12 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
             progress.step(1)
     cands.sort(key=lambda c: c.delta_bic)
     v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS if n not in skipped})
+    alike = lookalikes(cands, v, {n: REGISTRY[n].distinguished_by for n in CT.EFFECTS})
+    words += lookalike_words(alike)
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")
     lost = ((np.isfinite(log.obs_reading) & ~problem.r_sel & model.has("reading"))
             | (np.isfinite(log.obs_bearing) & ~problem.b_sel & model.has("bearing")))
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
-                     set_aside=int(np.sum(lost)), correlation=correlation(chs))
+                     set_aside=int(np.sum(lost)), correlation=correlation(chs), lookalikes=alike)

@@ -52,6 +52,7 @@ FOLDS = 3
 BIC_SUPPORT = -10.0          # delta BIC at most this (strong evidence on Kass and Raftery's scale)
 HELDOUT_SUPPORT = 0.0        # and the held-out log-likelihood must improve
 BIC_TIE = 2.0                # delta BICs closer than this are no evidence either way: the held-out score decides
+LOOKALIKE_BIC = 6.0          # supported candidates within this of the best explain the data about equally
 STRUCTURE_P = 1e-6           # residual structure counts when this significant ...
 STRUCTURE_OMEGA2 = 0.01      # ... and it explains at least 1 % of the residual variance
 CANDIDATE_ROUNDS, CANDIDATE_ITERATIONS = 2, 8
@@ -303,6 +304,37 @@ def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list
 
 
 # --------------------------------------------------------------------------- verdict
+def lookalikes(cands: list[Candidate], verdict_effect: str, separated_by: dict | None = None) -> list[dict]:
+    """The candidates that explain the data about as well as the verdict's effect: supported by BIC and within
+    ``LOOKALIKE_BIC`` of it (less than strong evidence between them on Kass and Raftery's scale). One group
+    (the verdict first) with each member's delta BIC and held-out gain and what data would tell them apart
+    (``separated_by``: effect name -> the effect class's ``distinguished_by``), or none."""
+    best = next((c for c in cands if c.effect == verdict_effect), None)
+    if best is None:
+        return []
+    group = [best] + [c for c in cands if c is not best and c.delta_bic <= BIC_SUPPORT
+                      and abs(c.delta_bic - best.delta_bic) < LOOKALIKE_BIC]
+    if len(group) < 2:
+        return []
+    sep = separated_by or {}
+    return [{"effects": [c.effect for c in group], "delta_bic": [c.delta_bic for c in group],
+             "heldout_nll_drop": [c.heldout_nll_drop for c in group],
+             "separated_by": {c.effect: sep.get(c.effect, "") for c in group}}]
+
+
+def lookalike_words(groups: list[dict]) -> list[str]:
+    """The look-alike groups in words: which effects, how close, and what would separate them."""
+    out = []
+    for g in groups:
+        first, others = g["effects"][0], g["effects"][1:]
+        out.append(f"Look-alikes: {', '.join(others)} explain{'s' if len(others) == 1 else ''} the data about as "
+                   f"well as {first} (delta BIC " + ", ".join(f"{b:.1f}" for b in g["delta_bic"]) +
+                   f": closer than {LOOKALIKE_BIC:g}); {first} is named on the evidence at hand, but this log does not "
+                   "separate them firmly. What would: " + "; ".join(
+                       f"for {e}, {w}" for e, w in g["separated_by"].items() if w) + ".")
+    return out
+
+
 def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None) -> tuple[str, list[str]]:
     """The verdict and the sentences that explain it.
 
@@ -367,6 +399,7 @@ class Diagnosis:
     set_aside: int = 0               # sightings left out as gross outliers (continuous logs; an action table's
     #                                  diagnosis keeps them: a few wild sightings are what false_detections models)
     correlation: dict = field(default_factory=dict)   # residual auto- and cross-correlation (analysis.correlation)
+    lookalikes: list = field(default_factory=list)    # candidates as good as the verdict's effect (:func:`lookalikes`)
     before_after: dict | None = None  # the change from an earlier diagnosis (analysis.before_after.compare)
     log: Log | None = None           # the log diagnosed (its report needs it)
     write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
@@ -376,7 +409,8 @@ class Diagnosis:
                 "candidates": [c.to_json() for c in self.candidates], "verdict": self.verdict,
                 "summary": self.words, "not_applicable": self.skipped,
                 "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
-                "sightings_set_aside": self.set_aside, "correlation": self.correlation,
+                "sightings_set_aside": self.set_aside, "lookalikes": self.lookalikes,
+                "correlation": self.correlation,
                 **({"before_after": self.before_after} if self.before_after else {}),
                 "seconds": round(self.seconds, 2)}
 
@@ -470,5 +504,6 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     struct = structures(rep)
     v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool})
-    return Diagnosis(rep, cands, v, words, struct, refit, chs, time.perf_counter() - t0, skipped,
-                     correlation=correlation(chs))
+    alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool})
+    return Diagnosis(rep, cands, v, words + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
+                     skipped, correlation=correlation(chs), lookalikes=alike)

@@ -17,6 +17,9 @@ class ActuatorLag(Effect):
     scale = (0.01,)
     explains = (("forward", "time_since_action_change"), ("lateral", "time_since_action_change"),
                 ("turn", "time_since_action_change"))
+    distinguished_by = ("commands that change faster than the lag, with sightings just after each change: the "
+                        "body's motion trails the command, while a camera latency shifts only what the camera "
+                        "sees")
     physics = ("The gait cannot switch instantly: after each new command the body keeps some of the "
                "old motion and settles to the new velocity exponentially with time constant tau.")
 

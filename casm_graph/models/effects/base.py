@@ -35,6 +35,7 @@ class Effect:
     scale: tuple[float, ...] = ()           # typical magnitudes (finite-difference steps, priors)
     explains: tuple[tuple[str, str], ...] = ()   # (channel, covariate) residual structure it accounts for
     physics: str = ""                       # one sentence for the catalog and the diagnosis
+    distinguished_by: str = ""              # what in a log tells it from the effects it resembles (look-alikes)
     noise_only: bool = False                # parameters set by the noise step, not least squares
     continuous_only: bool = False           # needs continuous (v, w) commands: the action-table simulator refuses it
 

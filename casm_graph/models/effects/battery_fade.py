@@ -12,6 +12,8 @@ class BatteryFade(Effect):
     start = (0.0,)
     scale = (0.005,)
     explains = (("forward", "time"), ("lateral", "time"), ("turn", "time"))
+    distinguished_by = ("the same actions run early and late in every part of the field: a fading battery slows "
+                        "the robot when it is, a slow floor where it is")
     physics = ("As the battery drains the servos deliver less power, so every action runs slower "
                "the longer the robot has been on: velocities fall by a fixed fraction per minute.")
 

@@ -15,6 +15,8 @@ class CameraLatency(Effect):
     scale = (0.005,)
     uses_velocity = True
     explains = (("bearing", "turn_rate"), ("reading", "speed"), ("bearing", "speed"))
+    distinguished_by = ("turns of the body with the commands steady: the image trails the motion itself, while an"
+                        " actuator lag delays only the motion after a command change")
     physics = ("Images take time to expose, transfer and process, so each sighting was taken where the "
                "robot was a little earlier: bearings lag behind turns by the delay times the turn rate.")
 

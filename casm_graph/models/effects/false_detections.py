@@ -31,6 +31,8 @@ class FalseDetections(Effect):
     scale = (0.01,)
     noise_only = True
     explains = ()
+    distinguished_by = ("many sightings of each landmark: a false one follows no landmark, while ordinary noise "
+                        "stays near the sensor curve")
     physics = ("The vision system sometimes reports a beacon that is not there or names the wrong one "
                "(a similar colour in the background): a share of sightings follows no landmark.")
 

@@ -28,6 +28,8 @@ class LandmarkOffset(Effect):
     channel = "sensor"
     explains = (("reading", "landmark"), ("bearing", "landmark"), ("reading", "x"), ("reading", "y"),
                 ("bearing", "x"), ("bearing", "y"))
+    distinguished_by = ("each landmark seen from several sides: a misplaced landmark biases the sightings by the "
+                        "side it is seen from, a distorting lens by the image angle")
     physics = ("The map is wrong about a landmark: it was knocked or measured carelessly, so sightings "
                "of it disagree with the others in both distance and direction.")
 

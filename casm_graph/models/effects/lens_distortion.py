@@ -14,6 +14,8 @@ class LensDistortion(Effect):
     start = (0.0,)
     scale = (0.01,)
     explains = (("reading", "image_angle"),)
+    distinguished_by = ("the same landmark seen at the edge and at the centre of the image from one distance: a "
+                        "lens scales by the image angle, a misplaced landmark by the viewpoint")
     physics = ("A wide-angle lens magnifies the edges of the image differently from its centre, so a "
                "beacon's apparent height grows (k > 0) or shrinks with the square of its image angle.")
 

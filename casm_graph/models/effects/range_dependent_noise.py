@@ -16,6 +16,8 @@ class RangeDependentNoise(Effect):
     scale = (0.05,)
     noise_only = True
     explains = (("reading", "distance"),)
+    distinguished_by = ("sightings over a wide spread of distances: this noise grows with the distance, not with "
+                        "the image angle or the landmark")
     physics = ("Far beacons cover few pixels, so edge quantisation and blur are a larger share of their "
                "height: the reading's noise grows linearly with distance, sigma (1 + growth d).")
 

@@ -107,6 +107,8 @@ class RegionalMotionNoise(Effect):
     noise_only = True
     continuous_only = True
     explains = (("forward", "x"), ("forward", "y"), ("turn", "x"), ("turn", "y"))
+    distinguished_by = ("each region visited often, in all directions: its noise, not its mean speed, differs "
+                        "from the others'")
     physics = ("The floor is not uniform: on rough parts (carpet, gravel) each step's translation and rotation "
                "scatter more; per region of a grid the variances are k_r |r| and k_t |theta| + k_d |r| "
                "(range, turn and drift errors).")

@@ -22,6 +22,8 @@ class SurfaceFriction(Effect):
     scale = (0.02, 0.02)
     explains = (("forward", "x"), ("forward", "y"), ("lateral", "x"), ("lateral", "y"),
                 ("turn", "x"), ("turn", "y"))
+    distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
+                        "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on one part of the field (x > 0 or y > 0) the feet slip or "
                "drag, so every action covers a smaller fraction of its usual distance there.")
 
