@@ -116,7 +116,5 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")
-    lost = ((np.isfinite(log.obs_reading) & ~problem.r_sel & model.has("reading"))
-            | (np.isfinite(log.obs_bearing) & ~problem.b_sel & model.has("bearing")))
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
-                     set_aside=int(np.sum(lost)), correlation=correlation(chs), lookalikes=alike)
+                     set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike)

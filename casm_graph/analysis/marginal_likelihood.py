@@ -686,10 +686,7 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
 
     def __init__(self, problem: CT.Problem, st: CT.State, model: Model):
         self.problem, self.state, self.model = problem, st, model
-        log = problem.log
-        lost_r = np.isfinite(log.obs_reading) & ~problem.r_sel & model.has("reading")
-        lost_b = np.isfinite(log.obs_bearing) & ~problem.b_sel & model.has("bearing")
-        self._set_aside = int(np.sum(lost_r | lost_b))
+        self._set_aside = problem.set_aside(model)
         A, e, groups = unit_rows(problem, st, model)
         n = A.shape[1]
         self.n = n

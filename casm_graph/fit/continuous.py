@@ -166,6 +166,12 @@ class Problem:
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
         return re, rJ, be, bJ
 
+    def set_aside(self, model: Model) -> int:
+        """Sightings of a channel ``model`` measures that the gate left out of this problem (gross outliers)."""
+        log = self.log
+        return int(np.sum((np.isfinite(log.obs_reading) & ~self.r_sel & model.has("reading"))
+                          | (np.isfinite(log.obs_bearing) & ~self.b_sel & model.has("bearing"))))
+
     def cost(self, st: State) -> float:
         """Half the squared motion and prior rows plus the sightings' Huber loss (what each IRLS step lowers)."""
         ae, _, re, _, be, _, pe = self.rows(st, robust_weights=False)

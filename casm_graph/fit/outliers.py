@@ -16,7 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from casm_graph.fit.residuals import observation
-from casm_graph.graph.augmented import theta_from_model
+from casm_graph.graph.augmented import parameter_slices, theta_from_model
 from casm_graph.graph.robust import mad_scale
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
@@ -39,8 +39,7 @@ def kept(log: Log, model: Model, poses: np.ndarray, effects: list) -> np.ndarray
     thousands of sigmas off would otherwise set the noise levels, or pass for an effect), or all of them when
     ``effects`` (instances) include an outlier mixture such as ``false_detections``, which models them."""
     theta = theta_from_model(effects, model)
-    cut = np.cumsum([0] + [len(e.params) for e in effects])
-    if any(e.outlier_fraction(theta[a:b]) > 0 for e, a, b in zip(effects, cut[:-1], cut[1:])):
+    if any(e.outlier_fraction(theta[s]) > 0 for e, s in zip(effects, parameter_slices(effects))):
         return np.ones(len(log.obs_t), bool)
     return ~outlying(log, model, np.asarray(poses, float))
 

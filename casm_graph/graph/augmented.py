@@ -76,6 +76,12 @@ def theta_from_model(effects: list[Effect], model: Model) -> np.ndarray:
     return np.array(vals, float)
 
 
+def parameter_slices(effects: list[Effect]) -> list[slice]:
+    """Each effect's slice of the stacked parameter vector theta, in the effects' order."""
+    cuts = np.concatenate([[0], np.cumsum([len(e.params) for e in effects])]).astype(int)
+    return [slice(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
+
+
 class EffectProblem:
     """One log, a model with noise levels held fixed, and effects; evaluated and linearised in numpy."""
 
@@ -84,10 +90,8 @@ class EffectProblem:
         self.log, self.model, self.effects = log, model, effects
         self.lay = G.layout(log, model, stride=1)
         lay = self.lay
-        sizes = [len(e.params) for e in effects]
-        cuts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-        self.slices = [slice(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
-        self.n_eff = int(cuts[-1])
+        self.slices = parameter_slices(effects)
+        self.n_eff = self.slices[-1].stop if self.slices else 0
         ls = np.concatenate([np.arange(s.start, s.stop) for e, s in zip(effects, self.slices)
                              if not e.noise_only] + [np.zeros(0, int)]).astype(int)
         self.ls_index = ls                                   # effect parameters that least squares moves
