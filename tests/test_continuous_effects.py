@@ -81,6 +81,9 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     assert lag["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
     assert lag["heldout_nll_drop"] is None and "continuous" in lag["heldout_skipped"]
     assert "battery_fade" in diag["not_applicable"]
+    pred = diag["predictive"]                                # open-loop error grows with the horizon
+    assert pred["horizons_s"][0] == 0 and set(pred["channels"]) == {"reading", "bearing"}
+    assert all(v[-1] > v[0] for v in pred["channels"].values())
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
 
 

@@ -67,6 +67,9 @@ def test_hidden_effect_is_named_added_and_the_error_falls(effect, tmp_path):
             assert ch["log_likelihood"][1] > ch["log_likelihood"][0]
         if effect == "actuator_lag":                                # the lag's error is in the forward motion
             assert ch["channels"]["forward"]["rms_raw"][1] < 0.8 * ch["channels"]["forward"]["rms_raw"][0]
+            # and run open-loop for the longest horizon, the model with the lag predicts the sightings better
+            for name, (before, after) in ch["predictive"]["channels"].items():
+                assert after[-1] < before[-1], (name, before, after)
 
 
 @pytest.mark.science

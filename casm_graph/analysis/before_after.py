@@ -38,7 +38,8 @@ def compare(before: dict, after: dict) -> dict:
     """What changed from ``before`` to ``after`` (both diagnosis.json dicts).
 
     Per channel: the whitened and raw residual RMS, and the strongest covariate of the earlier diagnosis
-    with its strength (omega squared) then and now. Log-likelihoods are the refitted models' on the same
+    with its strength (omega squared) then and now; the open-loop prediction error per horizon then and
+    now (``predictive``, when both diagnoses have it). Log-likelihoods are the refitted models' on the same
     log and sightings; they compare when the same sightings were set aside (both counts are given).
     """
     chans = {}
@@ -51,7 +52,12 @@ def compare(before: dict, after: dict) -> dict:
                                 "strength": [top.get("strength"), _covariate(a, top["name"], top.get("kind", "mean"))]}
         chans[ch] = row
     bb, ab = before.get("base", {}), after.get("base", {})
-    return {"verdict": [before.get("verdict"), after.get("verdict")],
+    pb, pa = before.get("predictive") or {}, after.get("predictive") or {}
+    pred = {}
+    if pb.get("horizons_s") and pb.get("horizons_s") == pa.get("horizons_s"):
+        common = sorted(set(pb.get("channels", {})) & set(pa.get("channels", {})))
+        pred = {"horizons_s": pa["horizons_s"], "channels": {ch: [pb["channels"][ch], pa["channels"][ch]] for ch in common}}
+    return {**({"predictive": pred} if pred else {}),"verdict": [before.get("verdict"), after.get("verdict")],
             "effects": [sorted(bb.get("effects", {})), sorted(ab.get("effects", {}))],
             "log_likelihood": [bb.get("log_likelihood"), ab.get("log_likelihood")],
             "sightings_set_aside": [before.get("sightings_set_aside", 0), after.get("sightings_set_aside", 0)],

@@ -19,6 +19,7 @@ import numpy as np
 
 import factors
 from casm_graph.analysis.correlation import correlation
+from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (Candidate, Diagnosis, channel_report, lookalike_words, lookalikes,
                                            structures, verdict)
 from casm_graph.fit import continuous as CT
@@ -117,4 +118,15 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
-                     set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike)
+                     set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
+                     predictive=open_loop_error(log, problem, model, full))
+
+
+def open_loop_error(log: Log, problem: CT.Problem, model: Model, poses: np.ndarray) -> dict:
+    """:func:`casm_graph.analysis.predictive.predictive` of the command map (its lag included) from ``poses``
+    (T+1, 3), the sightings the gate kept."""
+    def residuals(trajectory):
+        res = CT.sighting_residuals(log, trajectory[log.obs_step], model)
+        return {"reading": np.where(problem.r_sel, res["reading"], np.nan),
+                "bearing": np.where(problem.b_sel, res["bearing_residual"], np.nan)}
+    return predictive(poses, CT.step_velocities(log, model), log.dt, residuals)

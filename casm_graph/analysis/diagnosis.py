@@ -27,7 +27,7 @@ import os
 import pickle
 import signal
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -35,6 +35,8 @@ import numpy as np
 from scipy import stats
 
 from casm_graph.analysis.correlation import correlation
+from casm_graph.analysis.predictive import predictive
+from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.fit import effect_fit
 from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
 from casm_graph.graph.augmented import instantiate
@@ -401,6 +403,7 @@ class Diagnosis:
     correlation: dict = field(default_factory=dict)   # residual auto- and cross-correlation (analysis.correlation)
     lookalikes: list = field(default_factory=list)    # candidates as good as the verdict's effect (:func:`lookalikes`)
     before_after: dict | None = None  # the change from an earlier diagnosis (analysis.before_after.compare)
+    predictive: dict = field(default_factory=dict)    # open-loop prediction error per horizon (analysis.predictive)
     log: Log | None = None           # the log diagnosed (its report needs it)
     write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
 
@@ -410,15 +413,16 @@ class Diagnosis:
                 "summary": self.words, "not_applicable": self.skipped,
                 "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
                 "sightings_set_aside": self.set_aside, "lookalikes": self.lookalikes,
-                "correlation": self.correlation,
+                "correlation": self.correlation, "predictive": self.predictive,
                 **({"before_after": self.before_after} if self.before_after else {}),
                 "seconds": round(self.seconds, 2)}
 
     def summary(self) -> str:
         """The verdict and the reasons, as ``casm-graph diagnose`` prints them."""
         aside = [f"{self.set_aside} sighting(s) set aside as gross outliers"] if self.set_aside else []
+        said = predictive_words(self.predictive)
         return "\n".join([f"verdict: {self.verdict}  ({self.seconds:.0f} s)",
-                          *("  " + w for w in self.words + aside + self.change_lines())])
+                          *("  " + w for w in self.words + aside + ([said] if said else []) + self.change_lines())])
 
     def change_lines(self) -> list[str]:
         """The change from the earlier diagnosis (``before``), a line per channel, in words."""
@@ -437,6 +441,11 @@ class Diagnosis:
                 words += f"; {cov['kind']} vs {cov['name']} explained {100 * cov['strength'][0]:.1f} % -> " \
                          f"{100 * cov['strength'][1]:.1f} %"
             lines.append(words)
+        pred = ba.get("predictive")
+        if pred and pred["channels"]:
+            i = len(pred["horizons_s"]) - 1
+            lines.append(f"  predicted {pred['horizons_s'][i]:g} s ahead: " + ", ".join(
+                f"{ch} {v[0][i]:.4g} -> {v[1][i]:.4g}" for ch, v in pred["channels"].items()))
         return lines
 
     def save(self, out, force: bool = False) -> Path:
@@ -506,4 +515,15 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool})
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool})
     return Diagnosis(rep, cands, v, words + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
-                     skipped, correlation=correlation(chs), lookalikes=alike)
+                     skipped, correlation=correlation(chs), lookalikes=alike,
+                     predictive=open_loop_error(log, refit.problem, refit.state))
+
+
+def open_loop_error(log: Log, problem, st) -> dict:
+    """:func:`casm_graph.analysis.predictive.predictive` of the refitted action-table model: its motion effects
+    drive the open-loop runs, its sensor effects predict the sightings (a mixture's outliers left out)."""
+    def residuals(trajectory):
+        terms = problem.observation_terms(replace(st, poses=trajectory))
+        keep = problem.obs_mask & (terms["weight"] > 0.5)
+        return {ch: np.where(keep, terms[ch], np.nan) for ch in ("reading", "bearing")}
+    return predictive(st.poses, problem.step_velocity(st), log.dt, residuals)

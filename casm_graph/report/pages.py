@@ -11,6 +11,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
 from casm_graph.analysis.correlation import strongest
+from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.fit import residuals
 from casm_graph.fit.methods.base import Fit
 from casm_graph.graph import table as G
@@ -343,6 +344,23 @@ def correlation_figure(diag):
     return fig
 
 
+def predictive_figure(diag):
+    """Open-loop prediction error per horizon and channel (the earlier diagnosis' dashed when given)."""
+    pred = diag.predictive
+    chans = list(pred["channels"])
+    before = (diag.before_after or {}).get("predictive") or {}
+    fig, axes = subplots(1, len(chans), figsize=(6.5 * len(chans), 3.2), squeeze=False)
+    for ax, ch in zip(axes[0], chans):
+        if ch in before.get("channels", {}):
+            ax.plot(before["horizons_s"], before["channels"][ch][0], "o--", color="0.5", label="before")
+        ax.plot(pred["horizons_s"], pred["channels"][ch], "o-", color="C0", label="this model")
+        ax.set(xlabel="horizon (s): the model run open-loop this long", ylabel="error (robust scale, channel unit)",
+               title=f"{ch}: predicted sightings against measured")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
 def before_after_figure(diag):
     """Before and after: each channel's residual RMS (relative to before) and the earlier diagnosis' strongest
     covariate's share of the residual variance then and now."""
@@ -400,6 +418,10 @@ def _failure_panels(diag) -> str:
         # a dependence on a covariate explaining under 1 % of the variance is weaker than time structure
         # well outside its band: then time structure comes first
         parts.insert(0 if (top < 0.01 and ratio > 2) else 1, ("correlation", text))
+    if diag.predictive.get("channels") and len(diag.predictive["horizons_s"]) > 1:
+        parts.append(("predictive", f"<p>{html.escape(predictive_words(diag.predictive))} A model that lacks an "
+                                    f"effect of the motion predicts worse the longer it runs on its own.</p>"
+                                    f"{png(predictive_figure(diag))}"))
     return "".join(p for _, p in parts)
 
 
