@@ -74,7 +74,10 @@ def test_calibrate_in_memory_then_save_as_the_command_does(bundle, cal, tmp_path
     cal.save(tmp_path / "run")
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["model.json", "report.html", "trajectory.csv"]
     m = json.loads((tmp_path / "run" / "model.json").read_text())
-    assert m["fit"]["options"] == {"method": "graph", "sensor_degree": 3, "seed": 0, "effects": [], "regions": None}
+    assert m["fit"]["options"] == {"method": "graph", "sensor_degree": 3, "seed": 0, "effects": [], "regions": None,
+                                   "graph": {"coarse_stride": 10, "coarse_rounds": 6, "coarse_iterations": 5,
+                                             "coarse_relax": 1.0, "realias_after": [2, 4], "full_iterations": 15,
+                                             "full_rounds": 2}}
     assert m["fit"]["log"] == str(bundle) and m["fit"]["version"]
     assert main(["calibrate", str(bundle), "--out", str(tmp_path / "cli"), "--quiet"]) == 0
     c = json.loads((tmp_path / "cli" / "model.json").read_text())
@@ -179,3 +182,13 @@ def test_a_signal_at_a_random_moment_leaves_out_absent_or_complete(bundle, tmp_p
         assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".")] == []
         time.sleep(0.5)
         assert not [c for c in children if psutil.pid_exists(c) and psutil.Process(c).status() != "zombie"]
+
+
+def test_graph_options_are_passed_in_and_recorded(bundle, cal):
+    quick = cg.GraphOptions(coarse_rounds=2, realias_after=(1,), full_rounds=1, full_iterations=5)
+    fast = cg.calibrate(cg.load_log(bundle), graph=quick)
+    assert fast.model_json["fit"]["options"]["graph"] == {**quick.to_json(), "realias_after": [1]}
+    # the search the options ask for ran: fewer LM iterations than the default's, a model still near it
+    assert fast.fit.stages.count("coarse") <= 2 * quick.coarse_iterations
+    assert fast.fit.iterations < cal.fit.iterations
+    assert np.sqrt(np.mean((fast.model.velocities - cal.model.velocities) ** 2)) < 0.05

@@ -15,6 +15,7 @@ from typing import Callable
 import numpy as np
 
 from casm_graph.fit.methods.base import Fit
+from casm_graph.fit.methods.graph import GraphOptions
 from casm_graph.io.log import Log
 from casm_graph.io.output import atomic_dir, json_text
 from casm_graph.models.model import Model
@@ -42,10 +43,12 @@ class CalibrateOptions:
     effects: tuple = ()
     seed: int = 0
     regions: str | None = None
+    graph: GraphOptions = field(default_factory=GraphOptions)   # the action-table graph's search (graph, graph-em)
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,
-                "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions}
+                "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions,
+                "graph": self.graph.to_json()}
 
 
 def read_truth_model(log_dir) -> dict | None:

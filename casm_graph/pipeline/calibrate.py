@@ -108,8 +108,9 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
                 raise LogError(f"effect {cls.name!r} cannot be fitted on {log.source or 'this log'}: {why}")
         start = paper_start(log, options.sensor_degree)
         mixture = options.method == "graph" and any(cls.name == "false_detections" for cls in classes)
+        extra = {"options": options.graph} if options.method in ("graph", "graph-em") else {}
         fit = METHODS[options.method](log, start, seed=options.seed, progress=progress,
-                                      **({"mixture": True} if mixture else {}))
+                                      **({"mixture": True} if mixture else {}), **extra)
         if classes:
             fit = with_effects(log, fit, classes, seed=options.seed, progress=progress)
         truth = read_truth_model(log.source)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.stats import norm
@@ -35,15 +35,25 @@ from casm_graph.io.log import Log
 from casm_graph.models.effects.false_detections import FalseDetections, inlier_weights, outlier_density
 from casm_graph.models.model import Model
 
-COARSE_STRIDE = 10
-COARSE_ROUNDS = 6
-COARSE_ITERATIONS = 5
-COARSE_RELAX = 1.0
-REALIAS_AFTER = (2, 4)
-FULL_ITERATIONS = 15
-FULL_ROUNDS = 2
 RIDGE_WARNING = ("the fitted graph is nearly singular (a poor fit or a log that cannot pin the model down): "
                  "standard deviations computed with a ridge of {:g} x the largest information; treat them as lower bounds")
+
+
+@dataclass(frozen=True)
+class GraphOptions:
+    """How the factor-graph method searches (stages 2-3 of the module docstring); recorded in model.json
+    ``fit.options.graph``."""
+
+    coarse_stride: int = 10               # command steps per pose of the coarse graph
+    coarse_rounds: int = 6                # coarse rounds, each LM then the noise step
+    coarse_iterations: int = 5            # LM iterations per coarse round
+    coarse_relax: float = 1.0             # over-relaxation of the coarse noise step (in log sigma)
+    realias_after: tuple[int, ...] = (2, 4)   # coarse rounds after which every action's turn-rate alias is re-picked
+    full_iterations: int = 15             # LM iterations per full round
+    full_rounds: int = 2                  # full rounds (the noise step between them)
+
+    def to_json(self) -> dict:
+        return {**asdict(self), "realias_after": list(self.realias_after)}
 
 
 def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0, relax: float = 1.0) -> Model:
@@ -126,9 +136,10 @@ class Coarse:
 
 
 def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-                 mixture: bool = False) -> Coarse:
+                 mixture: bool = False, options: GraphOptions | None = None) -> Coarse:
     """Stages 1-3 of the module docstring: global initialisation, then the coarse graph in rounds
     (``mixture``: sightings weighted by the false-detection mixture, its share re-estimated each round)."""
+    o = options or GraphOptions()
     progress = progress or Progress()
     cost, stages, iterations = [], [], 0
     realiased: list[int] = []
@@ -136,19 +147,19 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
     init = initialise(log, start)
     model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float),
                              bearing_sigma=float(start.bearing_sigma))
-    lay = G.layout(log, model, stride=COARSE_STRIDE)
+    lay = G.layout(log, model, stride=o.coarse_stride)
     poses = init.poses[lay.knots]
     fraction, weight = (FalseDetections.start[0] if mixture else 0.0), None
-    progress.stage("coarse graph", COARSE_ROUNDS)
-    for r in range(COARSE_ROUNDS):
+    progress.stage("coarse graph", o.coarse_rounds)
+    for r in range(o.coarse_rounds):
         if mixture:
             weight, fraction = mixture_weights(log, poses[lay.obs_knot], model, fraction)
-        problem, st, model, h = _optimise(log, lay, model, poses, COARSE_ITERATIONS, cost, stages,
+        problem, st, model, h = _optimise(log, lay, model, poses, o.coarse_iterations, cost, stages,
                                           "coarse", progress, weight)
         iterations += h.iterations
         poses = st.poses
-        model = estimate_noise(problem, st, model, seed=seed + r, relax=COARSE_RELAX)
-        if r in REALIAS_AFTER:
+        model = estimate_noise(problem, st, model, seed=seed + r, relax=o.coarse_relax)
+        if r in o.realias_after:
             model, poses, changed = realias(log, lay, model, poses)
             realiased.extend(changed)
         progress.step(1)
@@ -157,12 +168,13 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
 
 @register("graph")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-        marginals: bool = True, mixture: bool = False) -> Fit:
+        marginals: bool = True, mixture: bool = False, options: GraphOptions | None = None) -> Fit:
     """Calibrate ``log`` from the paper's start ``start`` with the factor graph (``mixture``: with the
     false-detection mixture in every round, as ``--effect false_detections`` asks)."""
+    o = options or GraphOptions()
     progress = progress or Progress()
     t0 = time.perf_counter()
-    co = coarse_start(log, start, seed, progress, mixture)
+    co = coarse_start(log, start, seed, progress, mixture, o)
     fraction, weight = co.fraction, None
     model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
     realiased, init = co.realiased, co.init
@@ -170,15 +182,15 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     log = prune(log, pruned)
 
     full = G.layout(log, model, stride=1)
-    progress.stage("full graph", FULL_ROUNDS)
-    for r in range(FULL_ROUNDS):
+    progress.stage("full graph", o.full_rounds)
+    for r in range(o.full_rounds):
         if mixture:
             weight, fraction = mixture_weights(log, poses[log.obs_step], model, fraction)
-        problem, st, model, h = _optimise(log, full, model, poses, FULL_ITERATIONS, cost, stages,
+        problem, st, model, h = _optimise(log, full, model, poses, o.full_iterations, cost, stages,
                                           "full", progress, weight)
         iterations += h.iterations
         poses = st.poses
-        if r < FULL_ROUNDS - 1:
+        if r < o.full_rounds - 1:
             model = estimate_noise(problem, st, model, seed=seed + 100 + r)
         progress.step(1)
     converged = h.converged

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from casm_graph.fit.methods.base import Fit, Progress, register
-from casm_graph.fit.methods.graph import coarse_start
+from casm_graph.fit.methods.graph import GraphOptions, coarse_start
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain
@@ -154,11 +154,13 @@ def em_map(log: Log, lay: G.Layout, model: Model, poses: np.ndarray):
 
 @register("graph-em")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-        max_iterations: int = MAX_ITERATIONS, tol: float = TOL, truth: dict | None = None) -> Fit:
-    """Calibrate ``log`` by EM on the full factor graph, from the same coarse start as ``graph``."""
+        max_iterations: int = MAX_ITERATIONS, tol: float = TOL, truth: dict | None = None,
+        options: GraphOptions | None = None) -> Fit:
+    """Calibrate ``log`` by EM on the full factor graph, from the same coarse start as ``graph`` (``options``:
+    that start's)."""
     progress = progress or Progress()
     t0 = time.perf_counter()
-    co = coarse_start(log, start, seed, progress)
+    co = coarse_start(log, start, seed, progress, options=options)
     model, poses = co.model, co.poses
     pruned = outlying(log, model, poses)          # gross outliers out, as graph prunes them: the M-step is Gaussian
     log = prune(log, pruned)
