@@ -1,23 +1,34 @@
-"""Every analysis notebook runs top to bottom (at reduced size) on a real kernel."""
-import os
+"""Every analysis notebook runs top to bottom on a real kernel.
+
+CI runs the quickstart and the real-robot notebook at reduced size; the other three repeat, as
+demonstrations, what tests here check with assertions (graph_vs_ekfs_em: test_crosscheck;
+find_the_missing_effect: test_detection and test_api's own effect; seed_baselines: test_scasm and
+test_mcl; uncertainty_report: test_uncertainty) and run with ``CASM_FULL=1``, at full size, as they
+were committed.
+"""
 from pathlib import Path
 
 import nbformat
 import pytest
 from nbclient import NotebookClient
 
+from .conftest import FULL
+
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
-REDUCED = {"CASM_NB_MINUTES": "3", "CASM_NB_EKFS_MAX": "40", "CASM_NB_UNC_STEPS": "200", "CASM_NB_TRIALS": "1",
+IN_CI = {"00_quickstart.ipynb", "real_robots_mrclam.ipynb"}
+REDUCED = {"CASM_NB_MINUTES": "3", "CASM_NB_UNC_STEPS": "200", "CASM_NB_TRIALS": "1",
            "CASM_NB_CANDIDATES": "2"}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
 def test_notebook_runs(path, monkeypatch, tmp_path):
-    if os.environ.get("CASM_FULL") != "1":
+    if not FULL and path.name not in IN_CI:
+        pytest.skip("full size only (CASM_FULL=1): its checks are the tests named in this module's docstring")
+    if not FULL:
         for k, v in REDUCED.items():
             monkeypatch.setenv(k, v)
     monkeypatch.setenv("MPLBACKEND", "Agg")
     nb = nbformat.read(path, as_version=4)
-    NotebookClient(nb, timeout=1200, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
+    NotebookClient(nb, timeout=1800, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.get("output_type") == "error"]

@@ -1,0 +1,124 @@
+"""Diagnosis on a world written apart from the code: ``tests/worlds/independent_world.py``.
+
+That generator shares nothing with casm_graph's simulator or effect code: its own random field and
+landmarks, continuous-time motion at 200 Hz with slip, a sensor curve that is not a polynomial, and each
+effect produced by physics (a second-order actuator lag, a carpet patch at a random place, a time-shifted
+camera, ...) at a random strength. Each trial calibrates the base model, diagnoses it, adds the verdict
+(or, when the verdict is not a catalog effect, the hidden effect's catalog name when it has one) and
+diagnoses again; the error against the world's truth is the trajectory's position RMS. One JSON line per
+trial goes to ``--out`` as it finishes; the table at the end is what BENCHMARKS.md records.
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/independent_world.py --kinds table continuous --seeds 0 1 \\
+        --effects none actuator_lag camera_latency lens_distortion --minutes 6
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+import warnings
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import casm_graph as cg                                    # noqa: E402
+from tests.worlds.independent_world import generate        # noqa: E402
+
+CATALOG = {e["name"] for e in cg.catalog()}
+UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x"}   # the covariate each depends on
+CONTINUOUS_EFFECTS = {"actuator_lag", "lens_distortion"}    # what a continuous-command diagnosis can name
+
+
+def position_rms(cal, log) -> float:
+    tr = cal.trajectory
+    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
+
+
+def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path) -> dict:
+    """One world: calibrate, diagnose, add the named (or hidden) effect, diagnose again."""
+    t0 = time.perf_counter()
+    truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect)
+    log = cg.load_log(workdir / "log")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        base = cg.calibrate(log, seed=seed)
+        d1 = cg.diagnose(log, base)
+        add = d1.verdict if d1.verdict in CATALOG else (effect if effect in CATALOG and (
+            kind == "table" or effect in CONTINUOUS_EFFECTS) else None)
+        row = {"kind": kind, "effect": effect or "none", "strength": truth.get("strength"), "seed": seed,
+               "minutes": minutes, "verdict": d1.verdict,
+               "lookalikes": [g["effects"] for g in d1.lookalikes],
+               "error_before": position_rms(base, log), "added": add}
+        if add is not None:
+            fixed = cg.calibrate(log, effects=[add], seed=seed)
+            d2 = cg.diagnose(log, fixed, before=d1)
+            row.update(verdict_after=d2.verdict, error_after=position_rms(fixed, log),
+                       predictive=d2.before_after.get("predictive") if d2.before_after else None)
+    row["seconds"] = round(time.perf_counter() - t0, 1)
+    return row
+
+
+def wanted(row: dict) -> str:
+    e = row["effect"]
+    if e == "none":
+        return "none"
+    if e in UNCATALOGED:
+        return f"unexplained:{UNCATALOGED[e]}"
+    return e
+
+
+def print_table(rows: list[dict]) -> None:
+    groups = defaultdict(list)
+    for r in rows:
+        groups[(r["kind"], r["effect"])].append(r)
+    print("| kind | hidden effect | named right | wrong effect named | none (missed) | after adding: none | "
+          "position RMS before -> after, m (median) |")
+    print("|---|---|---:|---:|---:|---:|---|")
+    for (kind, eff), rs in sorted(groups.items()):
+        want = wanted(rs[0])
+        right = sum(r["verdict"] == want or any(want in g for g in r["lookalikes"]) for r in rs)
+        missed = sum(r["verdict"] == "none" for r in rs) if want != "none" else 0
+        wrong = len(rs) - right - missed
+        after = [r for r in rs if "verdict_after" in r]
+        none_after = sum(r["verdict_after"] == "none" for r in after)
+        err = (f"{np.median([r['error_before'] for r in after]):.3f} -> {np.median([r['error_after'] for r in after]):.3f}"
+               if after else f"{np.median([r['error_before'] for r in rs]):.3f}")
+        print(f"| {kind} | {eff} | {right}/{len(rs)} | {wrong}/{len(rs)} | {missed}/{len(rs)} | "
+              f"{none_after}/{len(after)} | {err} |")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--kinds", nargs="+", default=["table", "continuous"])
+    ap.add_argument("--effects", nargs="+", default=["none", "actuator_lag", "camera_latency", "lens_distortion"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--minutes", type=float, default=6.0)
+    ap.add_argument("--out", default="independent_world.jsonl")
+    ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
+    args = ap.parse_args()
+    if args.table:
+        print_table([json.loads(line) for p in args.table for line in open(p) if line.strip()])
+        return
+    rows = []
+    with open(args.out, "a") as f:
+        for kind in args.kinds:
+            for effect in args.effects:
+                for seed in args.seeds:
+                    with tempfile.TemporaryDirectory() as w:
+                        row = trial(kind, None if effect == "none" else effect, seed, args.minutes, Path(w))
+                    rows.append(row)
+                    f.write(json.dumps(row, default=float) + "\n")
+                    f.flush()
+                    print(f"{kind} {row['effect']} seed {seed}: verdict {row['verdict']}"
+                          + (f", after adding {row['added']}: {row.get('verdict_after')}" if row.get("added") else "")
+                          + f" ({row['seconds']:.0f} s)", flush=True)
+    print_table(rows)
+
+
+if __name__ == "__main__":
+    main()
