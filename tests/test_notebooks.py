@@ -1,6 +1,6 @@
 """Every analysis notebook runs top to bottom on a real kernel.
 
-CI runs the quickstart and the real-robot notebook at reduced size; the other three repeat, as
+CI runs the quickstart and the real-robot notebook at reduced size; the other four repeat, as
 demonstrations, what tests here check with assertions (graph_vs_ekfs_em: test_crosscheck;
 find_the_missing_effect: test_detection and test_api's own effect; seed_baselines: test_scasm and
 test_mcl; uncertainty_report: test_uncertainty) and run with ``CASM_FULL=1``, at full size, as they
