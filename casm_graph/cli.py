@@ -102,6 +102,7 @@ def _calibrate(args) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             log, fit = calibrate_run.run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
+                                         max_sensor_degree=args.max_sensor_degree,
                                          effects=tuple(args.effect), seed=args.seed, progress=bar, regions=args.regions,
                                          force=args.force, command=command_line(args))
     finally:
@@ -227,7 +228,10 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True)
     c.add_argument("--method", default="graph", choices=sorted(METHODS) + ["scasm", "scasm-graph"])
     c.add_argument("--effect", action="append", default=[], metavar="NAME")
-    c.add_argument("--sensor-degree", type=int, default=3)
+    c.add_argument("--sensor-degree", type=int, default=3, help="degree of the sensor polynomial (the paper's 3)")
+    c.add_argument("--max-sensor-degree", type=int, default=6,
+                   help="the graph method raises the degree up to this when the readings demand a bendier curve "
+                        "(set it to --sensor-degree to keep that degree)")
     c.add_argument("--regions", default=None, metavar="NX,NY[,X0,Y0,X1,Y1]",
                    help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")

@@ -44,11 +44,12 @@ class CalibrateOptions:
     seed: int = 0
     regions: str | None = None
     graph: GraphOptions = field(default_factory=GraphOptions)   # the action-table graph's search (graph, graph-em)
+    max_sensor_degree: int = 6         # the graph method raises the sensor degree up to this when the data demand
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,
                 "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions,
-                "graph": self.graph.to_json()}
+                "max_sensor_degree": self.max_sensor_degree, "graph": self.graph.to_json()}
 
 
 def read_truth_model(log_dir) -> dict | None:

@@ -84,6 +84,8 @@ def check_request(options: CalibrateOptions) -> list:
     classes = [get_effect(e) if isinstance(e, str) else e for e in options.effects]
     if not 1 <= options.sensor_degree <= 6:
         raise LogError(f"--sensor-degree must be between 1 and 6 (got {options.sensor_degree})")
+    if not 1 <= options.max_sensor_degree <= 6:
+        raise LogError(f"--max-sensor-degree must be between 1 and 6 (got {options.max_sensor_degree})")
     return classes
 
 
@@ -109,6 +111,8 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         start = paper_start(log, options.sensor_degree)
         mixture = options.method == "graph" and any(cls.name == "false_detections" for cls in classes)
         extra = {"options": options.graph} if options.method in ("graph", "graph-em") else {}
+        if options.method == "graph":
+            extra["max_sensor_degree"] = options.max_sensor_degree
         fit = METHODS[options.method](log, start, seed=options.seed, progress=progress,
                                       **({"mixture": True} if mixture else {}), **extra)
         if classes:
@@ -138,13 +142,14 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
 
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
         effects: tuple = (), seed: int = 0, progress: Progress | None = None,
-        regions: str | None = None, force: bool = False, command: str | None = None) -> tuple[Log, Fit | dict]:
+        regions: str | None = None, force: bool = False, command: str | None = None,
+        max_sensor_degree: int = 6) -> tuple[Log, Fit | dict]:
     """Load the bundle at ``log_dir``, calibrate it and write the run to ``out``; bad input raises LogError first.
 
     Returns the log and the method's :class:`Fit` (the model dict for the 1-D methods)."""
     checked_out(out, force, inputs=[log_dir])
     options = CalibrateOptions(method=method, sensor_degree=sensor_degree, effects=tuple(effects), seed=seed,
-                               regions=regions)
+                               regions=regions, max_sensor_degree=max_sensor_degree)
     check_request(options)
     log = load(log_dir)
     cal = calibrate(log, options, progress=progress, command=command)

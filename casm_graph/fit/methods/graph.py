@@ -26,6 +26,7 @@ from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
+from casm_graph.fit.sensor_degree import choose_degree
 from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import noise
@@ -168,9 +169,11 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
 
 @register("graph")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-        marginals: bool = True, mixture: bool = False, options: GraphOptions | None = None) -> Fit:
+        marginals: bool = True, mixture: bool = False, options: GraphOptions | None = None,
+        max_sensor_degree: int = 0) -> Fit:
     """Calibrate ``log`` from the paper's start ``start`` with the factor graph (``mixture``: with the
-    false-detection mixture in every round, as ``--effect false_detections`` asks)."""
+    false-detection mixture in every round, as ``--effect false_detections`` asks; ``max_sensor_degree``:
+    the sensor polynomial's degree may rise to it when the data demand, :mod:`casm_graph.fit.sensor_degree`)."""
     o = options or GraphOptions()
     progress = progress or Progress()
     t0 = time.perf_counter()
@@ -182,17 +185,27 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     log = prune(log, pruned)
 
     full = G.layout(log, model, stride=1)
+    asked = len(model.reading_poly) - 1
     progress.stage("full graph", o.full_rounds)
-    for r in range(o.full_rounds):
-        if mixture:
-            weight, fraction = mixture_weights(log, poses[log.obs_step], model, fraction)
-        problem, st, model, h = _optimise(log, full, model, poses, o.full_iterations, cost, stages,
-                                          "full", progress, weight)
-        iterations += h.iterations
-        poses = st.poses
-        if r < o.full_rounds - 1:
-            model = estimate_noise(problem, st, model, seed=seed + 100 + r)
-        progress.step(1)
+    for attempt in range(2):
+        for r in range(o.full_rounds):
+            if mixture:
+                weight, fraction = mixture_weights(log, poses[log.obs_step], model, fraction)
+            problem, st, model, h = _optimise(log, full, model, poses, o.full_iterations, cost, stages,
+                                              "full", progress, weight)
+            iterations += h.iterations
+            poses = st.poses
+            if r < o.full_rounds - 1:
+                model = estimate_noise(problem, st, model, seed=seed + 100 + r)
+            progress.step(1)
+        ok = ~np.isnan(log.obs_reading)
+        d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[ok]
+        better = None if attempt else choose_degree(d, log.obs_reading[ok], model.reading_poly,
+                                                    model.reading_sigma, max_sensor_degree)
+        if better is None:
+            break
+        model = model.with_(reading_poly=better)          # the data demand a bendier curve: the full graph again
+        progress.stage(f"full graph, sensor degree {len(better) - 1}", o.full_rounds)
     converged = h.converged
     final_cost = problem.cost(st)
 
@@ -216,7 +229,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                         fit={"method": "graph", "iterations": iterations,
                              "seconds": round(time.perf_counter() - t0, 3),
                              "log_likelihood": ll, "converged": bool(converged),
-                             "outliers_pruned": int(pruned.sum())},
+                             "outliers_pruned": int(pruned.sum()),
+                             "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1}},
                         effects={FalseDetections.name: {"fraction": fraction}} if mixture else {})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
