@@ -39,10 +39,11 @@ def position_rms(cal, log) -> float:
     return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
-def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path) -> dict:
-    """One world: calibrate, diagnose, add the named (or hidden) effect, diagnose again."""
+def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3) -> dict:
+    """One world (sightings no closer than ``min_range``): calibrate, diagnose, add the named (or hidden)
+    effect, diagnose again."""
     t0 = time.perf_counter()
-    truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect)
+    truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect, min_range=min_range)
     log = cg.load_log(workdir / "log")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -50,8 +51,8 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
         d1 = cg.diagnose(log, base)
         add = d1.verdict if d1.verdict in CATALOG else (effect if effect in CATALOG and (
             kind == "table" or effect in CONTINUOUS_EFFECTS) else None)
-        row = {"kind": kind, "effect": effect or "none", "strength": truth.get("strength"), "seed": seed,
-               "minutes": minutes, "verdict": d1.verdict,
+        row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "strength": truth.get("strength"),
+               "seed": seed, "minutes": minutes, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],
                "error_before": position_rms(base, log), "added": add}
         if add is not None:
@@ -75,11 +76,11 @@ def wanted(row: dict) -> str:
 def print_table(rows: list[dict]) -> None:
     groups = defaultdict(list)
     for r in rows:
-        groups[(r["kind"], r["effect"])].append(r)
-    print("| kind | hidden effect | named right | wrong effect named | none (missed) | after adding: none | "
+        groups[(r["kind"], r.get("min_range", 0.3), r["effect"])].append(r)
+    print("| kind | closest sighting, m | hidden effect | named right | wrong effect named | none (missed) | after adding: none | "
           "position RMS before -> after, m (median) |")
-    print("|---|---|---:|---:|---:|---:|---|")
-    for (kind, eff), rs in sorted(groups.items()):
+    print("|---|---|---|---:|---:|---:|---:|---|")
+    for (kind, closest, eff), rs in sorted(groups.items()):
         want = wanted(rs[0])
         right = sum(r["verdict"] == want or any(want in g for g in r["lookalikes"]) for r in rs)
         missed = sum(r["verdict"] == "none" for r in rs) if want != "none" else 0
@@ -88,7 +89,7 @@ def print_table(rows: list[dict]) -> None:
         none_after = sum(r["verdict_after"] == "none" for r in after)
         err = (f"{np.median([r['error_before'] for r in after]):.3f} -> {np.median([r['error_after'] for r in after]):.3f}"
                if after else f"{np.median([r['error_before'] for r in rs]):.3f}")
-        print(f"| {kind} | {eff} | {right}/{len(rs)} | {wrong}/{len(rs)} | {missed}/{len(rs)} | "
+        print(f"| {kind} | {closest:g} | {eff} | {right}/{len(rs)} | {wrong}/{len(rs)} | {missed}/{len(rs)} | "
               f"{none_after}/{len(after)} | {err} |")
 
 
@@ -99,6 +100,7 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--out", default="independent_world.jsonl")
+    ap.add_argument("--min-range", type=float, default=0.3, help="closest sighting in the world, m")
     ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     if args.table:
@@ -110,7 +112,8 @@ def main():
             for effect in args.effects:
                 for seed in args.seeds:
                     with tempfile.TemporaryDirectory() as w:
-                        row = trial(kind, None if effect == "none" else effect, seed, args.minutes, Path(w))
+                        row = trial(kind, None if effect == "none" else effect, seed, args.minutes, Path(w),
+                                    args.min_range)
                     rows.append(row)
                     f.write(json.dumps(row, default=float) + "\n")
                     f.flush()

@@ -292,7 +292,7 @@ def _pose_at(fine, t):
     return out
 
 
-def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s):
+def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s, min_range=MIN_RANGE):
     """Sightings at command-row times: visibility, detection, curve, noise and sensor effects."""
     t = np.arange(rows) / CMD_HZ[kind]
     pose = _pose_at(fine, t - s if effect == "camera_latency" else t)
@@ -301,7 +301,7 @@ def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s):
     d = np.hypot(dx, dy)
     brg = _wrap(np.arctan2(dy, dx) - pose[:, None, 2])
     fov = FOV[kind]
-    seen = (d >= MIN_RANGE) & (d <= MAX_RANGE) & (np.abs(brg) <= fov) & (rng.random(d.shape) < P_DETECT)
+    seen = (d >= min_range) & (d <= MAX_RANGE) & (np.abs(brg) <= fov) & (rng.random(d.shape) < P_DETECT)
     kk, ll = np.nonzero(seen)
     dd, aa = d[kk, ll], brg[kk, ll]
     clean = curve(dd)
@@ -315,7 +315,7 @@ def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s):
     if effect == "false_detections":
         fake = rng.random(len(dd)) < s
         m = int(fake.sum())
-        span = curve(np.array([MIN_RANGE, MAX_RANGE]))
+        span = curve(np.array([min_range, MAX_RANGE]))
         lm[fake] = rng.choice(lm_ids, m)
         reading[fake] = rng.uniform(span.min(), span.max(), m)
         bearing[fake] = rng.uniform(-fov, fov, m)
@@ -346,8 +346,10 @@ def _write(path, header, lines):
 
 
 # ----------------------------------------------------------------------------- entry point
-def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=None, sensor="both"):
-    """Write a complete log bundle into out_dir (new or empty) and return the truth dict."""
+def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=None, sensor="both",
+             min_range=MIN_RANGE):
+    """Write a complete log bundle into out_dir (new or empty) and return the truth dict (``min_range``: the
+    closest a landmark is sighted, m)."""
     if kind not in CMD_HZ:
         raise ValueError(f"kind must be 'table' or 'continuous', not {kind!r}")
     if sensor not in ("both", "range", "bearing"):
@@ -378,7 +380,8 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
     else:
         policy = _WaypointController(r_policy, field)
     fine, commands = _simulate(r_motion, kind, field, phys, policy, rows)
-    obs_lines, obs_stats = _observe(r_sensor, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s)
+    obs_lines, obs_stats = _observe(r_sensor, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s,
+                                    min_range)
 
     os.makedirs(out_dir, exist_ok=True)
     hz, sub = CMD_HZ[kind], PHYS_HZ // CMD_HZ[kind]
@@ -396,7 +399,7 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
     _write(os.path.join(out_dir, "truth.csv"), "t,x,y,theta",
            [f"{k / hz:.3f},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}" for k, p in enumerate(fine[::sub])])
 
-    d = np.linspace(MIN_RANGE, MAX_RANGE, 40)
+    d = np.linspace(min_range, MAX_RANGE, 40)
     truth = {
         "generator": "tests/worlds/independent_world.py", "kind": kind, "seed": seed,
         "minutes": minutes, "sensor": sensor, "field": field,
@@ -407,7 +410,7 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
         "noise": {"reading_sigma": READING_SIGMA[kind], "bearing_sigma": BEARING_SIGMA,
                   "slip_tau": SLIP_TAU, "slip_fraction": SLIP_FRAC, "slip_floor": list(SLIP_FLOOR),
                   "jitter": list(JITTER)},
-        "sensing": {"p_detect": P_DETECT, "fov": FOV[kind], "min_range": MIN_RANGE,
+        "sensing": {"p_detect": P_DETECT, "fov": FOV[kind], "min_range": min_range,
                     "max_range": MAX_RANGE},
         "rates": {"physics_hz": PHYS_HZ, "command_hz": hz},
         "stats": {"fraction_outside": float(np.mean(_clearance(field, fine[:, 0], fine[:, 1]) < 0)),
@@ -434,9 +437,10 @@ def main(argv=None):
     ap.add_argument("--effect", default=None)
     ap.add_argument("--strength", type=float, default=None)
     ap.add_argument("--sensor", choices=["both", "range", "bearing"], default="both")
+    ap.add_argument("--min-range", type=float, default=MIN_RANGE, help="closest sighting, m")
     a = ap.parse_args(argv)
     try:
-        truth = generate(a.out, a.kind, a.minutes, a.seed, a.effect, a.strength, a.sensor)
+        truth = generate(a.out, a.kind, a.minutes, a.seed, a.effect, a.strength, a.sensor, a.min_range)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
