@@ -76,3 +76,5 @@ def test_the_sensor_degree_rises_only_when_the_readings_demand():
     better = choose_degree(d, size, fit3, 1.0, 6)
     assert better is not None and len(better) - 1 > 3
     assert choose_degree(d, size, fit3, 1.0, 3) is None                  # unless the user holds the degree
+    steps = np.round(size / 100) * 100                                     # three distinct readings: nothing to raise
+    assert choose_degree(d, steps, np.polynomial.polynomial.polyfit(d, steps, 3), 1.0, 6) is None

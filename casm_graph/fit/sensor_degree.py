@@ -23,6 +23,7 @@ def choose_degree(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, s
     fitted curve's coefficients (low order first), ``sigma`` its reading noise.
     """
     degree = len(poly) - 1
+    max_degree = min(max_degree, len(np.unique(reading)) - 1)     # a curve needs more distinct readings than terms
     if max_degree <= degree or len(reading) < 10 * (max_degree + 1):
         return None
     res = reading - np.polynomial.polynomial.polyval(distance, poly)
