@@ -198,7 +198,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
             if r < o.full_rounds - 1:
                 model = estimate_noise(problem, st, model, seed=seed + 100 + r)
             progress.step(1)
-        ok = ~np.isnan(log.obs_reading)
+        ok = ~np.isnan(log.obs_reading)         # the readings' distances, kept for distance_range below
         d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[ok]
         better = None if attempt else choose_degree(d, log.obs_reading[ok], model.reading_poly,
                                                     model.reading_sigma, max_sensor_degree)
@@ -222,8 +222,6 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         ccov = m.param_cov[nv:, nv:].copy()
         model = model.with_(velocity_std=vstd, reading_poly_std=np.sqrt(np.diag(ccov)), reading_poly_cov=ccov)
         pose_std = world_std(poses, pose_std, cov_xy)
-    d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)
-    d = d[~np.isnan(log.obs_reading)]
     ll = log_likelihood(final_cost, full, log, model)
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": "graph", "iterations": iterations,
