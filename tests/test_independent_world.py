@@ -78,3 +78,107 @@ def test_the_sensor_degree_rises_only_when_the_readings_demand():
     assert choose_degree(d, size, fit3, 1.0, 3) is None                  # unless the user holds the degree
     steps = np.round(size / 100) * 100                                     # three distinct readings: nothing to raise
     assert choose_degree(d, steps, np.polynomial.polynomial.polyfit(d, steps, 3), 1.0, 6) is None
+
+
+# ----------------------------------------------------------------------------- uncataloged physics effects
+# Fast checks of the generator itself (numpy only): each effect changes the true motion as stated, measured
+# against the same seed without the effect (same field, actions, noise streams), so the shared slip cancels.
+def _bundle(path):
+    """World truth as written to disk, the 10/20 Hz true body velocity between truth rows, and the
+    effect-free body velocity the command of each row asks for."""
+    import json
+    truth = json.loads((path / "world_truth.json").read_text())
+    tr = np.loadtxt(path / "truth.csv", delimiter=",", skiprows=1)
+    cmd = np.loadtxt(path / "commands.csv", delimiter=",", skiprows=1, ndmin=2)
+    d = np.diff(tr[:, 1:], axis=0)
+    dth = np.angle(np.exp(1j * d[:, 2]))
+    th = tr[:-1, 3] + dth / 2
+    body = np.column_stack([np.cos(th) * d[:, 0] + np.sin(th) * d[:, 1],
+                            -np.sin(th) * d[:, 0] + np.cos(th) * d[:, 1], dth]) * truth["rates"]["command_hz"]
+    if truth["kind"] == "table":
+        nominal = np.array([truth["velocities"][str(int(a))] for a in cmd[:, 1]])
+    else:
+        m = truth["command_map"]
+        nominal = np.column_stack([m["forward"]["gain"] * cmd[:, 1] + m["forward"]["offset"],
+                                   m["lateral"]["gain"] * cmd[:, 1] + m["lateral"]["offset"],
+                                   m["turn"]["gain"] * cmd[:, 2] + m["turn"]["offset"]])
+    return truth, tr[:-1, 0], body, nominal
+
+
+def _pair(tmp_path, effect, kind, seed):
+    generate(tmp_path / "with", kind=kind, minutes=1, seed=seed, effect=effect)
+    generate(tmp_path / "without", kind=kind, minutes=1, seed=seed)
+    return _bundle(tmp_path / "with"), _bundle(tmp_path / "without")
+
+
+@pytest.mark.parametrize("kind", ["table", "continuous"])
+def test_time_speed_scales_forward_speed_by_a_slow_sinusoid(tmp_path, kind):
+    (truth, t, body, nom), (free, t0, body0, nom0) = _pair(tmp_path, "time_speed", kind, seed=3)
+    g, s = truth["geometry"], truth["strength"]
+    assert truth["field"] == free["field"] and truth["landmarks"] == free["landmarks"]
+
+    def amplitude(t, body, nom):                  # forward = nominal (1 + k sin(2 pi t / period + phase))
+        x = nom[:, 0] * np.sin(2 * np.pi * t / g["period"] + g["phase"])
+        return float(x @ (body[:, 0] - nom[:, 0]) / (x @ x))
+
+    k, k0 = amplitude(t, body, nom), amplitude(t0, body0, nom0)
+    assert abs(k0) < 0.3 * s                                          # nothing of the sort without the effect
+    assert k - k0 == pytest.approx(s, rel=0.2)
+    # turn and lateral motion are untouched: their residuals look like the effect-free ones
+    for j in (1, 2):
+        assert np.std(body[:, j] - nom[:, j]) < 1.5 * np.std(body0[:, j] - nom0[:, j])
+
+
+def test_time_speed_is_an_oscillation_not_a_fade():
+    from .worlds.independent_world import _Physics
+    geom = {"period": 120.0, "phase": 0.7}
+    phys = _Physics("time_speed", 0.15, geom, None)
+    pose = np.zeros((1, 3))
+    t = np.linspace(0, 240, 481)
+    f = np.array([phys.factor(pose, ti)[0] for ti in t])
+    assert np.allclose(f[:, 1:], 1.0)                                 # forward speed only
+    assert np.allclose(f[:, 0], 1 + 0.15 * np.sin(2 * np.pi * t / 120 + 0.7))
+    assert f[:, 0].max() == pytest.approx(1.15, abs=1e-3) and f[:, 0].min() == pytest.approx(0.85, abs=1e-3)
+    assert f[0, 0] == pytest.approx(f[240, 0]) == pytest.approx(f[480, 0])   # back where it started each period
+
+
+@pytest.mark.parametrize("kind", ["table", "continuous"])
+def test_speed_turn_pulls_aside_in_proportion_to_forward_speed(tmp_path, kind):
+    (truth, t, body, nom), (free, t0, body0, nom0) = _pair(tmp_path, "speed_turn", kind, seed=3)
+    g = truth["geometry"]
+    assert truth["field"] == free["field"] and truth["landmarks"] == free["landmarks"]
+    extra, extra0 = body[:, 2] - nom[:, 2], body0[:, 2] - nom0[:, 2]  # true turn rate beyond the commanded one
+    slope = np.polyfit(body[:, 0], extra, 1)[0] - np.polyfit(body0[:, 0], extra0, 1)[0]
+    assert slope == pytest.approx(g["gain"], rel=0.15)
+    assert np.sign(slope) == g["sign"]
+    moving = np.abs(body[:, 0]) > 0.1
+    assert abs(np.corrcoef(body[moving, 0], extra[moving])[0, 1]) > 0.5
+    assert abs(np.corrcoef(body0[np.abs(body0[:, 0]) > 0.1, 0], extra0[np.abs(body0[:, 0]) > 0.1])[0, 1]) < 0.3
+
+
+@pytest.mark.parametrize("effect", ["time_speed", "speed_turn"])
+def test_time_speed_and_speed_turn_geometry_in_world_truth(tmp_path, effect):
+    import json
+
+    from .worlds.independent_world import EFFECTS, UNCATALOGED
+    assert effect in UNCATALOGED
+    kinds = {"time_speed": "table", "speed_turn": "continuous"}
+    signs = set()
+    for seed in (0, 3):
+        out = tmp_path / f"s{seed}"
+        generate(out, kind=kinds[effect], minutes=1, seed=seed, effect=effect)
+        truth = json.loads((out / "world_truth.json").read_text())
+        g, s = truth["geometry"], truth["strength"]
+        assert truth["effect"] == effect and g["uncataloged"] is True
+        assert EFFECTS[effect][0] <= s <= EFFECTS[effect][1]
+        if effect == "time_speed":
+            assert 90.0 <= g["period"] <= 240.0 and -np.pi <= g["phase"] <= np.pi
+        else:
+            assert g["sign"] in (-1.0, 1.0) and g["gain"] == pytest.approx(g["sign"] * s)
+            signs.add(g["sign"])
+    if effect == "speed_turn":
+        assert signs == {-1.0, 1.0}                                   # seeds 0 and 3 pull to opposite sides
+    again = generate(tmp_path / "again", kind=kinds[effect], minutes=1, seed=3, effect=effect)
+    assert again["geometry"] == g and again["strength"] == s          # reproducible from the seed
+    given = generate(tmp_path / "given", kind=kinds[effect], minutes=1, seed=3, effect=effect, strength=0.3)
+    assert given["strength"] == 0.3 and all(given["geometry"][k] == g[k] for k in g if k != "gain")

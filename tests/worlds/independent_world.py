@@ -6,6 +6,15 @@ continuous-time physics at 200 Hz, Ornstein-Uhlenbeck wheel slip instead of per-
 increments, a non-polynomial sensor curve, effects produced by physics. It writes the log bundle
 of INTERFACE.md section 1 plus world_truth.json.
 
+The UNCATALOGED effects are ones no catalog is expected to name, each produced inside the 200 Hz
+integration with geometry drawn from the seed and recorded under "geometry" in world_truth.json:
+    heading_speed         forward *= 1 + s cos(theta - phi)                  geometry: phi
+    position_drift_speed  forward *= 1 + s (x - x0) / field_width            geometry: x0, field_width
+    time_speed            forward *= 1 + s sin(2 pi t / period + phase)      geometry: period, phase
+                          (period 90-240 s: a slow oscillation, not a monotone fade)
+    speed_turn            w += sign s v_forward (s in rad per metre)         geometry: sign, gain = sign s
+                          (the chassis pulls to one side the more, the faster it goes)
+
     generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=None, sensor="both")
     python tests/worlds/independent_world.py OUT --kind table --minutes 6 --seed 0 [--effect NAME]
 """
@@ -35,8 +44,11 @@ EFFECTS = {  # name: strength range drawn when strength is None
     "battery_fade": (0.01, 0.04), "lens_distortion": (0.2, 0.5),
     "range_dependent_noise": (0.3, 0.8), "false_detections": (0.03, 0.08),
     "landmark_offset": (0.15, 0.35), "heading_speed": (0.1, 0.2),
-    "position_drift_speed": (0.1, 0.25)}
-UNCATALOGED = ("heading_speed", "position_drift_speed")
+    "position_drift_speed": (0.1, 0.25),
+    "time_speed": (0.1, 0.2),           # forward *= 1 + s sin(2 pi t / period + phase), period 90-240 s
+    "speed_turn": (0.15, 0.35)}         # w += sign * s * v_forward, s in rad per metre, sign random
+UNCATALOGED = ("heading_speed", "position_drift_speed", "time_speed", "speed_turn")
+TIME_SPEED_PERIOD = (90.0, 240.0)       # s, range of the time_speed oscillation period
 
 
 def _wrap(a):
@@ -134,6 +146,11 @@ def _draw_effect(rng, effect, strength, f, lm_ids):
         geom["phi"] = float(rng.uniform(-math.pi, math.pi))
     elif effect == "position_drift_speed":
         geom.update(x0=(f["xmin"] + f["xmax"]) / 2, field_width=f["width"])
+    elif effect == "time_speed":
+        geom.update(period=float(rng.uniform(*TIME_SPEED_PERIOD)), phase=float(rng.uniform(-math.pi, math.pi)))
+    elif effect == "speed_turn":
+        sign = float(rng.choice([-1.0, 1.0]))
+        geom.update(sign=sign, gain=sign * s)       # rad/s of turn per m/s of forward speed
     return s, geom
 
 
@@ -161,6 +178,8 @@ class _Physics:
             f[:, 0] *= 1.0 + s * np.cos(pose[:, 2] - g["phi"])
         elif e == "position_drift_speed":
             f[:, 0] *= 1.0 + s * (pose[:, 0] - g["x0"]) / g["field_width"]
+        elif e == "time_speed":
+            f[:, 0] *= 1.0 + s * math.sin(2 * math.pi * t / g["period"] + g["phase"])
         return f
 
     def step(self, pose, lag, nominal, t, dt, ou=None, jitter=None):
@@ -178,6 +197,8 @@ class _Physics:
                                      SLIP_FRAC * np.abs(v[:, 2]) + 0.02 * lin + SLIP_FLOOR[2]])
             v += ou * scale + jitter
         v *= self.factor(pose, t)
+        if self.effect == "speed_turn":               # the chassis pulls aside in proportion to forward speed
+            v[:, 2] += self.geom["gain"] * v[:, 0]
         th = pose[:, 2] + 0.5 * v[:, 2] * dt          # midpoint heading
         c, s = np.cos(th), np.sin(th)
         pose[:, 0] += (c * v[:, 0] - s * v[:, 1]) * dt
