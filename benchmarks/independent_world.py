@@ -30,7 +30,8 @@ import casm_graph as cg                                    # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 CATALOG = {e["name"] for e in cg.catalog()}
-UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x"}   # the covariate each depends on
+UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x", "time_speed": "time",
+               "speed_turn": "speed"}   # the covariate each depends on
 CONTINUOUS_EFFECTS = {"actuator_lag", "lens_distortion"}    # what a continuous-command diagnosis can name
 
 

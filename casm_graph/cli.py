@@ -21,7 +21,7 @@ from casm_graph.fit.methods import METHODS, Progress
 from casm_graph.io import mrclam, plaza
 from casm_graph.io.log import LogError
 from casm_graph.io.output import atomic_dir, checked_out, discard_partial
-from casm_graph.models.effects import catalog
+from casm_graph.models.effects import catalog, proposal
 from casm_graph.models.effects.regional_motion_noise import determined
 from casm_graph.pipeline import calibrate as calibrate_run
 from casm_graph.pipeline import compare, fleet
@@ -85,6 +85,19 @@ def _simulate(args) -> int:
     return 0
 
 
+def _requested_effects(args) -> tuple:
+    """``--effect`` names, ``proposal`` replaced by the effect the ``--proposal`` diagnosis proposed."""
+    if "proposal" not in args.effect:
+        if args.proposal:
+            raise LogError("--proposal DIAG is read only with --effect proposal")
+        return tuple(args.effect)
+    if not args.proposal:
+        raise LogError("--effect proposal needs --proposal DIAG: the diagnosis (directory or diagnosis.json) "
+                       "that proposed it")
+    made = proposal.from_diagnosis(args.proposal)
+    return tuple(made if e == "proposal" else e for e in args.effect)
+
+
 def _calibrate(args) -> int:
     bar = Bar(enabled=not args.quiet)
     if args.method in calibrate_run.SCASM_METHODS:
@@ -103,7 +116,7 @@ def _calibrate(args) -> int:
             warnings.simplefilter("always", RuntimeWarning)
             log, fit = calibrate_run.run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
                                          max_sensor_degree=args.max_sensor_degree,
-                                         effects=tuple(args.effect), seed=args.seed, progress=bar, regions=args.regions,
+                                         effects=_requested_effects(args), seed=args.seed, progress=bar, regions=args.regions,
                                          force=args.force, command=command_line(args))
     finally:
         bar.close()
@@ -227,7 +240,10 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("log")
     c.add_argument("--out", required=True)
     c.add_argument("--method", default="graph", choices=sorted(METHODS) + ["scasm", "scasm-graph"])
-    c.add_argument("--effect", action="append", default=[], metavar="NAME")
+    c.add_argument("--effect", action="append", default=[], metavar="NAME",
+                   help="add a catalog effect (repeatable); 'proposal' adds the one a diagnosis proposed (--proposal)")
+    c.add_argument("--proposal", default=None, metavar="DIAG",
+                   help="the diagnosis (directory or diagnosis.json) whose proposed effect --effect proposal adds")
     c.add_argument("--sensor-degree", type=int, default=3, help="degree of the sensor polynomial (the paper's 3)")
     c.add_argument("--max-sensor-degree", type=int, default=6,
                    help="the graph method raises the degree up to this when the readings demand a bendier curve "

@@ -21,7 +21,7 @@ import factors
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (Candidate, Diagnosis, channel_report, lookalike_words, lookalikes,
-                                           structures, verdict)
+                                           proposal_for, structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
@@ -59,7 +59,8 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
            "turn_rate": seg_v[:, 2], "time_since_action_change": since}
     out = {}
     for k, name in enumerate(("forward", "lateral", "turn")):
-        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov, command=seg_v[:, k])
+        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov, command=seg_v[:, k],
+                            span=lay.seg_time)
     pose = P[lay.obs_knot]
     res = CT.sighting_residuals(log, pose, model)
     dist, bearing = res["distance"], res["bearing"]
@@ -119,7 +120,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
                      "residual structure it is built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
                      set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, problem, model, full))
+                     predictive=open_loop_error(log, problem, model, full), proposal=proposal_for(v, chs))
 
 
 def open_loop_error(log: Log, problem: CT.Problem, model: Model, poses: np.ndarray) -> dict:

@@ -37,13 +37,16 @@ from scipy import stats
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
+from casm_graph.analysis.proposal import propose
+from casm_graph.analysis.proposal import words as proposal_words
 from casm_graph.fit import effect_fit
 from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
 from casm_graph.graph.augmented import instantiate
 from casm_graph.io.log import Log, LogError
 from casm_graph.io.output import atomic_dir, json_text
-from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects import REGISTRY, of_model
 from casm_graph.models.effects.base import held
+from casm_graph.models.effects.proposal import proposal_effect
 from casm_graph.models.model import Model
 
 SCHEMA = "casm-graph/diagnosis/1"
@@ -404,6 +407,7 @@ class Diagnosis:
     lookalikes: list = field(default_factory=list)    # candidates as good as the verdict's effect (:func:`lookalikes`)
     before_after: dict | None = None  # the change from an earlier diagnosis (analysis.before_after.compare)
     predictive: dict = field(default_factory=dict)    # open-loop prediction error per horizon (analysis.predictive)
+    proposal: dict = field(default_factory=dict)      # an effect equation for unexplained motion structure (analysis.proposal)
     log: Log | None = None           # the log diagnosed (its report needs it)
     write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
 
@@ -414,15 +418,16 @@ class Diagnosis:
                 "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
                 "sightings_set_aside": self.set_aside, "lookalikes": self.lookalikes,
                 "correlation": self.correlation, "predictive": self.predictive,
+                **({"proposal": self.proposal} if self.proposal else {}),
                 **({"before_after": self.before_after} if self.before_after else {}),
                 "seconds": round(self.seconds, 2)}
 
     def summary(self) -> str:
         """The verdict and the reasons, as ``casm-graph diagnose`` prints them."""
         aside = [f"{self.set_aside} sighting(s) set aside as gross outliers"] if self.set_aside else []
-        said = predictive_words(self.predictive)
+        said = [w for w in (proposal_words(self.proposal), predictive_words(self.predictive)) if w]
         return "\n".join([f"verdict: {self.verdict}  ({self.seconds:.0f} s)",
-                          *("  " + w for w in self.words + aside + ([said] if said else []) + self.change_lines())])
+                          *("  " + w for w in self.words + aside + said + self.change_lines())])
 
     def change_lines(self) -> list[str]:
         """The change from the earlier diagnosis (``before``), a line per channel, in words."""
@@ -447,6 +452,13 @@ class Diagnosis:
             lines.append(f"  predicted {pred['horizons_s'][i]:g} s ahead: " + ", ".join(
                 f"{ch} {v[0][i]:.4g} -> {v[1][i]:.4g}" for ch, v in pred["channels"].items()))
         return lines
+
+    def proposal_effect(self) -> type:
+        """The effect class of the proposal (``cg.calibrate(log, effects=[diag.proposal_effect()])``)."""
+        if not self.proposal:
+            raise LogError(f"no effect was proposed (verdict {self.verdict}): a proposal comes with an "
+                           "'unexplained:<covariate>' verdict whose motion residuals a library term explains")
+        return proposal_effect(self.proposal["terms"])
 
     def save(self, out, force: bool = False) -> Path:
         """Write DIAG (diagnosis.json, report.html) all or nothing; ``out`` must be new or empty."""
@@ -475,8 +487,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     pool = list(pool.values())
     if progress is not None:
         progress.stage("refit model", None)
-    own = {cls.name: cls for cls in extra_effects}
-    present = [own.get(n, n) for n in model.effects]
+    present = of_model(model.effects, extra_effects)
     present_names = set(model.effects)
     refit = effect_fit.fit(log, model, poses, present, rounds=CANDIDATE_ROUNDS, iterations=CANDIDATE_ITERATIONS)
     # the reference every candidate is scored against: the same warm-started procedure, nothing added
@@ -516,7 +527,13 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool})
     return Diagnosis(rep, cands, v, words + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, refit.problem, refit.state))
+                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs))
+
+
+def proposal_for(verdict_name: str, chs: dict) -> dict:
+    """The sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`) when the verdict is
+    ``unexplained:<covariate>``: structure no catalog effect explains."""
+    return propose(chs) if verdict_name.startswith("unexplained:") else {}
 
 
 def open_loop_error(log: Log, problem, st) -> dict:

@@ -42,6 +42,7 @@ from casm_graph.fit.outliers import kept
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph.augmented import AState, EffectProblem, instantiate, theta_from_model
 from casm_graph.io.log import Log, wrap
+from casm_graph.models.effects import of_model
 from casm_graph.models.model import Model
 
 LOG2PI = float(np.log(2 * np.pi))
@@ -610,7 +611,7 @@ def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -
     Gross outliers at ``poses`` are set aside first (:func:`casm_graph.fit.outliers.kept`, as the calibration
     prunes them): the likelihood is Gaussian, so one reading thousands of sigmas off would otherwise set the
     reading sigma the sampler sees."""
-    effects = instantiate(list(model.effects), log)
+    effects = instantiate(of_model(model.effects), log)
     theta = theta_from_model(effects, model)
     problem = EffectProblem(log, model, effects, theta, obs_mask=kept(log, model, poses, effects))
     st = problem.state(poses, model, theta)

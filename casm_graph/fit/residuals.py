@@ -89,6 +89,7 @@ class Channel:
     time: np.ndarray              # s since the log began (orders the series for whiteness)
     covariates: dict              # name -> (n,) array; NaN where unknown
     command: np.ndarray | None = field(default=None, repr=False)   # motion: the model's velocity on this axis
+    span: np.ndarray | None = field(default=None, repr=False)      # motion: s each residual covers
 
 
 def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
@@ -103,9 +104,10 @@ def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
            "turn_rate": v[:, 2], "time_since_action_change": problem.m_ctx["since"],
            "action": log.action.astype(float)}
     commanded = st.velocities[problem.lay.seg_action]
+    span = problem.lay.seg_steps * problem.lay.seg_dt
     for k, name in enumerate(("forward", "lateral", "turn")):
         out[name] = Channel(name, r.action_e[:, k], r.action_e[:, k] * problem.motion_sigma[:, k], t, cov,
-                            command=commanded[:, k])
+                            command=commanded[:, k], span=span)
     terms = problem.observation_terms(st)
     pred = problem.predictions(st)
     ctx = problem.sensor_context(st)

@@ -17,6 +17,7 @@ from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
 from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects.proposal import NAME as PROPOSAL
 from casm_graph.models.model import Model
 from casm_graph.report import pages as report
 
@@ -75,7 +76,8 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                             action_ids=log.action_ids, velocity_std=None)
-        unknown = [n for n in model.effects if n not in REGISTRY and n not in {c.name for c in extra_effects}]
+        unknown = [n for n in model.effects if n not in REGISTRY and n != PROPOSAL
+                   and n not in {c.name for c in extra_effects}]
         if unknown:
             raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
         if poses is None:

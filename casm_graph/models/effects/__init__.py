@@ -10,13 +10,22 @@ from casm_graph.models.effects import (
     false_detections,  # noqa: F401
     landmark_offset,  # noqa: F401
     lens_distortion,  # noqa: F401
+    proposal,
     range_dependent_noise,  # noqa: F401
     regional_motion_noise,  # noqa: F401
     surface_friction,  # noqa: F401
 )
 from casm_graph.models.effects.base import REGISTRY, Effect, get, register
 
-__all__ = ["REGISTRY", "Effect", "get", "register", "catalog"]
+__all__ = ["REGISTRY", "Effect", "get", "register", "catalog", "of_model"]
+
+
+def of_model(effects: dict, own=()) -> list[type[Effect]]:
+    """The classes of a model's ``effects`` entries: ``own`` (user classes) by name, the catalog's, and a
+    proposal rebuilt from its stored terms (:mod:`casm_graph.models.effects.proposal`)."""
+    mine = {cls.name: cls for cls in own}
+    return [mine[name] if name in mine else proposal.from_stored(entry) if name == proposal.NAME else get(name)
+            for name, entry in effects.items()]
 
 
 def catalog() -> list[dict]:

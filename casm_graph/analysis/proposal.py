@@ -1,0 +1,141 @@
+"""Discovery beyond the catalog: a sparse regression of the motion residuals on a library of terms.
+
+When no catalog effect explains the structure, each motion axis's residual velocity (measured minus
+modelled, over each residual's span) is regressed on the library of
+:func:`casm_graph.models.effects.proposal.library` (heading, position, time, speed, turn rate, alone
+and times the axis's own velocity, and the oscillation in time whose period fits best). Residuals are averaged over blocks of about a second first: the
+smoothed trajectory's per-step residuals are correlated over a few steps.
+scikit-learn's LARS lasso with BIC picks the terms; a least-squares refit on them gives coefficients
+and t-values (statsmodels' OLS with a Newey-West covariance: block means of a smoothed trajectory still
+drift slowly together), and terms under ``min_t`` are dropped. The result is a readable equation the user can
+add as an effect (``--effect proposal``) and watch the error fall.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import statsmodels.api as sm
+from sklearn.linear_model import LassoLarsIC
+
+from casm_graph.models.effects.proposal import AXES, OWN, equation, features, library, periodic_terms
+
+
+@dataclass(frozen=True)
+class ProposalOptions:
+    """How the regression searches; recorded in diagnosis.json with its result."""
+
+    block_s: float = 1.0          # s of residuals averaged into one regression row
+    min_t: float = 5.0            # least t-value of a kept term (Newey-West: the smoothed residuals' slow drift
+    hac_s: float = 20.0           # counts), 5 for the library's many tries; hac_s: s of lags the HAC covariance spans
+    min_r2: float = 0.02          # least share of the block-mean variance the proposal must explain
+    shortest_period: float = 30.0  # s: the fastest oscillation in time the library tries
+    min_cycles: float = 1.5       # the slowest: this many periods must fit in the log
+    periods: int = 40             # periods tried, evenly on a log scale
+
+
+def _blocks(time: np.ndarray, block_s: float) -> np.ndarray:
+    """Block index of each row: consecutive ``block_s`` seconds."""
+    return np.floor((time - time[0]) / block_s).astype(int)
+
+
+def _block_means(y: np.ndarray, X: np.ndarray, w: np.ndarray, b: np.ndarray):
+    """Span-weighted means of ``y`` and ``X`` per block, and each block's weight."""
+    n = b.max() + 1
+    W = np.bincount(b, w, n)
+    keep = W > 0
+    ym = np.bincount(b, w * y, n)[keep] / W[keep]
+    Xm = np.column_stack([np.bincount(b, w * X[:, j], n)[keep] / W[keep] for j in range(X.shape[1])])
+    return ym, Xm, W[keep]
+
+
+def _steps(chs: dict, axis: str):
+    """Context (pose, time) and model velocity (n, 3) of each motion residual, as the effect hook sees them."""
+    cov = chs[axis].covariates
+    ctx = {"pose": np.column_stack([cov["x"], cov["y"], cov["heading"]]), "t": np.asarray(cov["time"], float)}
+    v = np.column_stack([np.asarray(chs[a].command, float) for a in AXES])
+    return ctx, v
+
+
+def _best_period(y: np.ndarray, ctx: dict, v: np.ndarray, axis: str, b: np.ndarray, w: np.ndarray,
+                 options: ProposalOptions) -> float | None:
+    """The period (s) of the oscillation in time that best fits the block means, or None on a short log."""
+    t = ctx["t"]
+    longest = (t.max() - t.min()) / options.min_cycles
+    if longest < options.shortest_period:
+        return None
+    best, best_p = np.inf, None
+    for period in np.geomspace(options.shortest_period, longest, options.periods):
+        X = features(axis, [f"{OWN[axis]}*{k}" for k in periodic_terms(period)] + list(periodic_terms(period)),
+                     ctx, v)
+        ym, Xm, _ = _block_means(y, X, w, b)
+        A = np.column_stack([np.ones(len(ym)), Xm])
+        rss = np.sum((ym - A @ np.linalg.lstsq(A, ym, rcond=None)[0]) ** 2)
+        if rss < best:
+            best, best_p = rss, float(round(period))
+    return best_p
+
+
+def fit_axis(chs: dict, axis: str, options: ProposalOptions) -> dict | None:
+    """The sparse regression on one motion axis: kept terms, coefficients, t-values, R^2; None if nothing."""
+    ch = chs.get(axis)
+    if ch is None or ch.span is None or ch.command is None or any(chs.get(a) is None for a in AXES):
+        return None
+    span = np.asarray(ch.span, float)
+    ctx, v = _steps(chs, axis)
+    y = ch.raw / np.where(span > 0, span, np.nan)             # residual velocity on the axis
+    ok = np.isfinite(y) & np.all(np.isfinite(v), axis=1) & np.all(np.isfinite(ctx["pose"]), axis=1)
+    y, v, w = y[ok], v[ok], span[ok]
+    ctx = {k: c[ok] for k, c in ctx.items()}
+    if len(y) < 50:
+        return None
+    b = _blocks(ctx["t"], options.block_s)
+    period = _best_period(y, ctx, v, axis, b, w, options)
+    names = library(axis, () if period is None else (period,))
+    ym, Xm, W = _block_means(y, features(axis, names, ctx, v), w, b)
+    if len(ym) < 3 * len(names):
+        return None
+    mu, sd = Xm.mean(axis=0), Xm.std(axis=0)
+    use = sd > 1e-12 * (1 + np.abs(mu))
+    yc = ym - ym.mean()
+    lasso = LassoLarsIC(criterion="bic", fit_intercept=False).fit((Xm[:, use] - mu[use]) / sd[use], yc)
+    cols = np.flatnonzero(use)[np.abs(lasso.coef_) > 0]
+    while len(cols):                     # least squares on the lasso's terms; the weakest goes until all pass
+        ols = sm.OLS(ym, np.column_stack([np.ones(len(ym)), Xm[:, cols]])).fit(
+            cov_type="HAC", cov_kwds={"maxlags": max(1, int(round(options.hac_s / options.block_s)))})
+        coef, tval, res = ols.params[1:], ols.tvalues[1:], ols.resid
+        weakest = int(np.argmin(np.abs(tval)))
+        if abs(tval[weakest]) >= options.min_t:
+            break
+        cols = np.delete(cols, weakest)
+    if not len(cols):
+        return None
+    r2 = 1.0 - float(res @ res) / float(yc @ yc)
+    if r2 < options.min_r2:
+        return None
+    key = [f"{axis}: {names[c]}" for c in cols]
+    return {"axis": axis, "terms": dict(zip(key, map(float, coef))), "t_values": dict(zip(key, map(float, tval))),
+            "r2": r2, "blocks": int(len(ym)), "period_tried_s": period}
+
+
+def propose(chs: dict, options: ProposalOptions | None = None) -> dict:
+    """The proposal over every motion axis: terms (``"<axis>: <term>"`` -> coefficient), equation lines, and
+    each axis's fit; empty when no axis has a term that passes."""
+    o = options or ProposalOptions()
+    fits = [f for f in (fit_axis(chs, a, o) for a in AXES) if f is not None]
+    if not fits:
+        return {}
+    terms = {k: v for f in fits for k, v in f["terms"].items()}
+    return {"terms": terms, "equation": equation(terms),
+            "axes": {f["axis"]: {"r2": f["r2"], "blocks": f["blocks"], "t_values": f["t_values"]} for f in fits},
+            "options": asdict(o)}
+
+
+def words(proposal: dict) -> str:
+    """The proposal in a sentence for the summary, with how to add it."""
+    if not proposal:
+        return ""
+    r2 = ", ".join(f"{a} {100 * v['r2']:.0f} %" for a, v in proposal["axes"].items())
+    return ("Proposed from the motion residuals (sparse regression over a library of terms; share of the "
+            f"residual variance it explains: {r2}): " + "; ".join(proposal["equation"])
+            + ". Add it with `--effect proposal --proposal DIAG/diagnosis.json`.")
