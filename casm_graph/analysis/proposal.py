@@ -6,8 +6,8 @@ modelled, over each residual's span) is regressed on the library of
 and times the axis's own velocity, and the oscillation in time whose period fits best). Residuals are averaged over blocks of about a second first: the
 smoothed trajectory's per-step residuals are correlated over a few steps.
 scikit-learn's LARS lasso with BIC picks the terms; a least-squares refit on them gives coefficients
-and t-values (statsmodels' OLS with a Newey-West covariance: block means of a smoothed trajectory still
-drift slowly together), and terms under ``min_t`` are dropped. The result is a readable equation the user can
+and t-values (a Newey-West covariance: block means of a smoothed trajectory still drift slowly
+together), and terms under ``min_t`` are dropped. The result is a readable equation the user can
 add as an effect (``--effect proposal``) and watch the error fall.
 """
 from __future__ import annotations
@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import statsmodels.api as sm
 from sklearn.linear_model import LassoLarsIC
 
 from casm_graph.models.effects.proposal import AXES, OWN, equation, features, library, periodic_terms
@@ -76,6 +75,23 @@ def _best_period(y: np.ndarray, ctx: dict, v: np.ndarray, axis: str, b: np.ndarr
     return best_p
 
 
+def ols_hac(y: np.ndarray, X: np.ndarray, lags: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least squares of ``y`` on ``X``: coefficients, t-values with the Newey-West (Bartlett) covariance over
+    ``lags`` rows and the small-sample factor n / (n - k), and residuals. Written out (ten lines, as
+    statsmodels' ``OLS.fit(cov_type="HAC", use_correction=True)`` computes it, to 1e-14) rather than pulling
+    statsmodels and pandas in for one formula."""
+    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    e = y - X @ coef
+    u = X * e[:, None]
+    S = u.T @ u
+    for lag in range(1, min(lags, len(y) - 1) + 1):
+        G = u[lag:].T @ u[:-lag]
+        S += (1.0 - lag / (lags + 1.0)) * (G + G.T)
+    bread = np.linalg.pinv(X.T @ X)
+    cov = bread @ S @ bread * len(y) / max(len(y) - X.shape[1], 1)
+    return coef, coef / np.sqrt(np.maximum(np.diag(cov), 1e-300)), e
+
+
 def fit_axis(chs: dict, axis: str, options: ProposalOptions) -> dict | None:
     """The sparse regression on one motion axis: kept terms, coefficients, t-values, R^2; None if nothing."""
     ch = chs.get(axis)
@@ -101,9 +117,9 @@ def fit_axis(chs: dict, axis: str, options: ProposalOptions) -> dict | None:
     lasso = LassoLarsIC(criterion="bic", fit_intercept=False).fit((Xm[:, use] - mu[use]) / sd[use], yc)
     cols = np.flatnonzero(use)[np.abs(lasso.coef_) > 0]
     while len(cols):                     # least squares on the lasso's terms; the weakest goes until all pass
-        ols = sm.OLS(ym, np.column_stack([np.ones(len(ym)), Xm[:, cols]])).fit(
-            cov_type="HAC", cov_kwds={"maxlags": max(1, int(round(options.hac_s / options.block_s)))})
-        coef, tval, res = ols.params[1:], ols.tvalues[1:], ols.resid
+        coef, tval, res = ols_hac(ym, np.column_stack([np.ones(len(ym)), Xm[:, cols]]),
+                                  max(1, int(round(options.hac_s / options.block_s))))
+        coef, tval = coef[1:], tval[1:]
         weakest = int(np.argmin(np.abs(tval)))
         if abs(tval[weakest]) >= options.min_t:
             break
