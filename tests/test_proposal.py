@@ -53,6 +53,12 @@ def test_the_own_velocity_is_not_a_term_and_bad_terms_fail_in_one_line(tmp_path)
     assert main(["calibrate", str(log), "--out", str(tmp_path / "r"), "--effect", "proposal", "--quiet",
                  "--proposal", str(tmp_path / "diag")]) == 2
     assert not (tmp_path / "r").exists()
+    (tmp_path / "diag" / "diagnosis.json").write_text(json.dumps({"proposal": {"terms": {
+        "forward: v_forward*cos(heading)": 0.05}}}))
+    generate(tmp_path / "cont", kind="continuous", minutes=0.5, seed=1)       # continuous fits take no proposal yet
+    assert main(["calibrate", str(tmp_path / "cont"), "--out", str(tmp_path / "r"), "--effect", "proposal", "--quiet",
+                 "--proposal", str(tmp_path / "diag")]) == 2
+    assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.science

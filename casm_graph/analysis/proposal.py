@@ -25,8 +25,8 @@ class ProposalOptions:
     """How the regression searches; recorded in diagnosis.json with its result."""
 
     block_s: float = 1.0          # s of residuals averaged into one regression row
-    min_t: float = 5.0            # least t-value of a kept term (Newey-West: the smoothed residuals' slow drift
-    hac_s: float = 20.0           # counts), 5 for the library's many tries; hac_s: s of lags the HAC covariance spans
+    min_t: float = 5.0            # least |t| of a kept term: high, for the library's many tries
+    hac_s: float = 20.0           # s of lags the Newey-West covariance spans (smoothed residuals drift slowly)
     min_r2: float = 0.02          # least share of the block-mean variance the proposal must explain
     shortest_period: float = 30.0  # s: the fastest oscillation in time the library tries
     min_cycles: float = 1.5       # the slowest: this many periods must fit in the log
