@@ -15,6 +15,8 @@ from hypothesis import strategies as st
 
 from casm_graph.io.log import MAX_POSITION, Log, LogError, load
 
+from .conftest import FULL
+
 SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 WEIRD = ["1_350", "\u0661\u0663", "\uff11", "\u00b2", "0x10", "0b1", "1e", "e1", ".", "-", "+", "+-1", "1.5.2",
@@ -206,7 +208,7 @@ def write_bundle(d: Path, log, reading, bearing, landmark, t_scale: float) -> No
             f"{t * t_scale!r},{k},{r},{b}\n" for t, k, r, b in zip(log.obs_t, landmark, reading, bearing)))
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=12 if FULL else 8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=st.data())
 def test_calibrate_gives_a_sane_model_or_one_line(data):
     """Perturbed small logs through ``casm-graph calibrate``: exit 0 with a finite model.json and complete output,
