@@ -8,6 +8,7 @@
 """
 from casm_graph.analysis.diagnosis import Diagnosis
 from casm_graph.analysis.groundtruth import evaluate as against_truth
+from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit.calibration import CalibrateOptions, Calibration
 from casm_graph.fit.methods.graph import GraphOptions
 from casm_graph.io.log import Log, LogError
@@ -23,4 +24,4 @@ from casm_graph.sim.protocols import simulate, write_log
 
 __all__ = ["load_log", "simulate", "write_log", "calibrate", "diagnose", "uncertainty", "Effect", "register", "catalog",
            "model_error", "against_truth", "load_mrclam", "find_mrclam", "LogError", "Log", "CalibrateOptions",
-           "Calibration", "GraphOptions", "Diagnosis", "Uncertainty"]
+           "Calibration", "GraphOptions", "Diagnosis", "Uncertainty", "ProposalOptions"]

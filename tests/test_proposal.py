@@ -3,6 +3,7 @@
 The science test hides an uncataloged effect (forward speed scaled by 1 + s cos(heading - phi)) in the
 independent world (tests/worlds), which produces it by physics in its own 200 Hz integration.
 """
+import dataclasses
 import json
 import pickle
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 import casm_graph as cg
+from casm_graph.analysis.diagnosis import proposal_for
 from casm_graph.cli import main
 from casm_graph.io.log import LogError
 from casm_graph.models.effects import of_model
@@ -76,6 +78,8 @@ def test_a_heading_dependent_speed_is_proposed_added_and_the_error_falls(tmp_pat
     terms = diag.proposal["terms"]
     assert set(terms) <= {"forward: v_forward*cos(heading)", "forward: v_forward*sin(heading)"}, terms
     assert "Add it with" in diag.summary()
+    assert diag.proposal["options"] == dataclasses.asdict(cg.ProposalOptions())            # recorded with it
+    assert proposal_for(diag.verdict, diag.residuals, cg.ProposalOptions(min_t=1e9)) == {}   # options passed in
 
     cal2 = cg.calibrate(log, effects=[diag.proposal_effect()])
     got = cal2.model.effects["proposal"]

@@ -22,6 +22,7 @@ from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (Candidate, Diagnosis, channel_report, lookalike_words, lookalikes,
                                            proposal_for, structures, verdict)
+from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
@@ -78,7 +79,8 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     return out
 
 
-def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagnosis:
+def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
+             proposal_options: ProposalOptions | None = None) -> Diagnosis:
     """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate effects."""
     t0 = time.perf_counter()
     if progress is not None:
@@ -120,7 +122,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None) -> Diagno
                      "residual structure it is built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
                      set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, problem, model, full), proposal=proposal_for(v, chs))
+                     predictive=open_loop_error(log, problem, model, full), proposal=proposal_for(v, chs, proposal_options))
 
 
 def open_loop_error(log: Log, problem: CT.Problem, model: Model, poses: np.ndarray) -> dict:

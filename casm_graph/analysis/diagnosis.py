@@ -37,7 +37,7 @@ from scipy import stats
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
-from casm_graph.analysis.proposal import propose
+from casm_graph.analysis.proposal import ProposalOptions, propose
 from casm_graph.analysis.proposal import words as proposal_words
 from casm_graph.fit import effect_fit
 from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
@@ -470,7 +470,7 @@ class Diagnosis:
 
 
 def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
-             progress=None, candidates=None, client=None) -> Diagnosis:
+             progress=None, candidates=None, client=None, proposal_options: ProposalOptions | None = None) -> Diagnosis:
     """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
 
     ``extra_effects``: user effect classes to consider besides the catalog.
@@ -527,13 +527,13 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool})
     return Diagnosis(rep, cands, v, words + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs))
+                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, proposal_options))
 
 
-def proposal_for(verdict_name: str, chs: dict) -> dict:
-    """The sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`) when the verdict is
-    ``unexplained:<covariate>``: structure no catalog effect explains."""
-    return propose(chs) if verdict_name.startswith("unexplained:") else {}
+def proposal_for(verdict_name: str, chs: dict, options: ProposalOptions | None = None) -> dict:
+    """The sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`, searching as ``options``
+    say) when the verdict is ``unexplained:<covariate>``: structure no catalog effect explains."""
+    return propose(chs, options) if verdict_name.startswith("unexplained:") else {}
 
 
 def open_loop_error(log: Log, problem, st) -> dict:

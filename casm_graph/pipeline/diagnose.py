@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from casm_graph.analysis.before_after import compare, load_before
+from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continuous
 from casm_graph.analysis.diagnosis import Diagnosis
 from casm_graph.analysis.diagnosis import diagnose as diagnose_table
@@ -43,14 +44,16 @@ def check_compatible(log: Log, model: Model, source: str) -> None:
 
 
 def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
-             progress=None, poses: np.ndarray | None = None, client=None, before=None) -> Diagnosis:
+             progress=None, poses: np.ndarray | None = None, client=None, before=None,
+             proposal_options: ProposalOptions | None = None) -> Diagnosis:
     """Where ``calibration`` fails on ``log`` and which effect is missing; in memory (``save`` writes DIAG).
 
     ``calibration`` is a :class:`Calibration` (its trajectory is the start) or a :class:`Model` (then
     ``poses`` if given, else a fresh smoother's). ``extra_effects``: user effect classes to consider;
     ``client``: a Dask ``distributed.Client`` to fit the candidates and folds on (default: a local process pool);
     ``before``: an earlier diagnosis of the log (a :class:`Diagnosis`, its DIAG directory, diagnosis.json or its dict) to
-    show the change against (``before_after`` in diagnosis.json, a table and figure in the report).
+    show the change against (``before_after`` in diagnosis.json, a table and figure in the report);
+    ``proposal_options``: how an unexplained verdict's equation is searched (recorded with the proposal).
     """
     if before is not None and not isinstance(before, (Diagnosis, dict)):
         before = load_before(before)                 # read first: a bad path fails before the computation
@@ -71,7 +74,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
             if progress is not None:
                 progress.stage("start trajectory", None)
             poses = continuous.fit(log, model, marginals=False).poses
-        diag = diagnose_continuous(log, model, poses, progress=progress)
+        diag = diagnose_continuous(log, model, poses, progress=progress, proposal_options=proposal_options)
     else:
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
@@ -85,6 +88,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
                 progress.stage("start trajectory", None)
             poses = ekfs_fit(log, model, max_iterations=1).poses
         diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
+                              proposal_options=proposal_options,
                               candidates=candidates, client=client)
     diag.log, diag.write_report = log, report.diagnosis
     if before is not None:
