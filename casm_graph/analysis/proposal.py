@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from sklearn.linear_model import LassoLarsIC
 
-from casm_graph.models.effects.proposal import AXES, OWN, equation, features, library, periodic_terms
+from casm_graph.models.effects.proposal import AXES, equation, features, library, periodic_terms, with_own
 
 
 @dataclass(frozen=True)
@@ -39,13 +39,13 @@ def _blocks(time: np.ndarray, block_s: float) -> np.ndarray:
 
 
 def _block_means(y: np.ndarray, X: np.ndarray, w: np.ndarray, b: np.ndarray):
-    """Span-weighted means of ``y`` and ``X`` per block, and each block's weight."""
+    """Span-weighted means of ``y`` and ``X`` per block."""
     n = b.max() + 1
     W = np.bincount(b, w, n)
     keep = W > 0
     ym = np.bincount(b, w * y, n)[keep] / W[keep]
     Xm = np.column_stack([np.bincount(b, w * X[:, j], n)[keep] / W[keep] for j in range(X.shape[1])])
-    return ym, Xm, W[keep]
+    return ym, Xm
 
 
 def _steps(chs: dict, axis: str):
@@ -65,9 +65,7 @@ def _best_period(y: np.ndarray, ctx: dict, v: np.ndarray, axis: str, b: np.ndarr
         return None
     best, best_p = np.inf, None
     for period in np.geomspace(options.shortest_period, longest, options.periods):
-        X = features(axis, [f"{OWN[axis]}*{k}" for k in periodic_terms(period)] + list(periodic_terms(period)),
-                     ctx, v)
-        ym, Xm, _ = _block_means(y, X, w, b)
+        ym, Xm = _block_means(y, features(axis, with_own(axis, periodic_terms(period)), ctx, v), w, b)
         A = np.column_stack([np.ones(len(ym)), Xm])
         rss = np.sum((ym - A @ np.linalg.lstsq(A, ym, rcond=None)[0]) ** 2)
         if rss < best:
@@ -108,7 +106,7 @@ def fit_axis(chs: dict, axis: str, options: ProposalOptions) -> dict | None:
     b = _blocks(ctx["t"], options.block_s)
     period = _best_period(y, ctx, v, axis, b, w, options)
     names = library(axis, () if period is None else (period,))
-    ym, Xm, W = _block_means(y, features(axis, names, ctx, v), w, b)
+    ym, Xm = _block_means(y, features(axis, names, ctx, v), w, b)
     if len(ym) < 3 * len(names):
         return None
     mu, sd = Xm.mean(axis=0), Xm.std(axis=0)
@@ -143,7 +141,7 @@ def propose(chs: dict, options: ProposalOptions | None = None) -> dict:
         return {}
     terms = {k: v for f in fits for k, v in f["terms"].items()}
     return {"terms": terms, "equation": equation(terms),
-            "axes": {f["axis"]: {"r2": f["r2"], "blocks": f["blocks"], "t_values": f["t_values"]} for f in fits},
+            "axes": {f["axis"]: {k: f[k] for k in ("r2", "blocks", "t_values", "period_tried_s")} for f in fits},
             "options": asdict(o)}
 
 

@@ -7,18 +7,17 @@ from pathlib import Path
 import numpy as np
 
 from casm_graph.analysis.before_after import compare, load_before
-from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continuous
 from casm_graph.analysis.diagnosis import Diagnosis
 from casm_graph.analysis.diagnosis import diagnose as diagnose_table
+from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit import continuous
 from casm_graph.fit.calibration import Calibration
 from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
 from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
-from casm_graph.models.effects import REGISTRY
-from casm_graph.models.effects.proposal import NAME as PROPOSAL
+from casm_graph.models.effects import unresolved
 from casm_graph.models.model import Model
 from casm_graph.report import pages as report
 
@@ -79,8 +78,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                             action_ids=log.action_ids, velocity_std=None)
-        unknown = [n for n in model.effects if n not in REGISTRY and n != PROPOSAL
-                   and n not in {c.name for c in extra_effects}]
+        unknown = unresolved(model.effects, extra_effects)
         if unknown:
             raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
         if poses is None:

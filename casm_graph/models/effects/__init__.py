@@ -17,15 +17,22 @@ from casm_graph.models.effects import (
 )
 from casm_graph.models.effects.base import REGISTRY, Effect, get, register
 
-__all__ = ["REGISTRY", "Effect", "get", "register", "catalog", "of_model"]
+__all__ = ["REGISTRY", "Effect", "get", "register", "catalog", "of_model", "unresolved"]
 
 
 def of_model(effects: dict, own=()) -> list[type[Effect]]:
     """The classes of a model's ``effects`` entries: ``own`` (user classes) by name, the catalog's, and a
     proposal rebuilt from its stored terms (:mod:`casm_graph.models.effects.proposal`)."""
     mine = {cls.name: cls for cls in own}
-    return [mine[name] if name in mine else proposal.from_stored(entry) if name == proposal.NAME else get(name)
+    return [mine[name] if name in mine else proposal.proposal_effect(entry) if name == proposal.NAME else get(name)
             for name, entry in effects.items()]
+
+
+def unresolved(effects: dict, own=()) -> list[str]:
+    """Names in a model's ``effects`` that :func:`of_model` cannot resolve: neither ``own``, the catalog's
+    nor a proposal."""
+    mine = {cls.name for cls in own}
+    return [name for name in effects if name not in mine and name not in REGISTRY and name != proposal.NAME]
 
 
 def catalog() -> list[dict]:

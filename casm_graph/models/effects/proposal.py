@@ -3,7 +3,7 @@
 The diagnosis proposes one (:mod:`casm_graph.analysis.proposal`) when no catalog effect explains the
 motion residuals' structure: ``forward velocity += 0.03 v_forward*cos(heading) - 0.02 y``. Each
 parameter is a term's coefficient and is named ``"<axis>: <term>"``, so model.json alone says what
-the effect computes and :func:`from_stored` rebuilds it. Terms are the library's features of the
+the effect computes and :func:`proposal_effect` rebuilds it from a model.json entry. Terms are the library's features of the
 step (heading, position, time, speed, the velocities, a slow oscillation in time), alone or times the axis's
 own velocity.
 """
@@ -48,13 +48,17 @@ def _base(name: str, pose: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarr
     return None
 
 
-def library(axis: str, periods=()) -> tuple[str, ...]:
-    """The terms a proposal on ``axis`` may use: each base feature alone (not the axis's own velocity: that is
-    the model's gain) and times the axis's own velocity; ``periods`` (s) add oscillations in time."""
+def with_own(axis: str, base) -> tuple[str, ...]:
+    """The terms of ``axis`` from base features: each alone (not the axis's own velocity: that is the model's
+    gain) and times the axis's own velocity (not times a velocity)."""
     own = OWN[axis]
-    base = BASE_TERMS + tuple(term for p in periods for term in periodic_terms(p))
-    alone = tuple(b for b in base if b != own)
-    return alone + tuple(f"{own}*{b}" for b in base if b not in ("v_forward", "v_lateral", "w"))
+    return tuple(b for b in base if b != own) + tuple(f"{own}*{b}" for b in base if b not in OWN.values())
+
+
+def library(axis: str, periods=()) -> tuple[str, ...]:
+    """The terms a proposal on ``axis`` may use (:func:`with_own` of the base features); ``periods`` (s) add
+    oscillations in time."""
+    return with_own(axis, BASE_TERMS + tuple(term for p in periods for term in periodic_terms(p)))
 
 
 def _split(axis: str, term: str) -> tuple[bool, str]:
@@ -96,8 +100,9 @@ def parse(names) -> list[tuple[str, str]]:
 def equation(coefficients: dict) -> list[str]:
     """One readable line per axis: ``forward velocity += 0.03 v_forward*cos(heading) - 0.02 y``."""
     lines = []
+    terms = parse(coefficients)
     for axis in AXES:
-        parts = [(c, term) for (a, term), c in zip(parse(coefficients), coefficients.values()) if a == axis]
+        parts = [(c, term) for (a, term), c in zip(terms, coefficients.values()) if a == axis]
         if not parts:
             continue
         text = " ".join(f"{'-' if c < 0 else '+'} {abs(c):.3g} {term}" for c, term in parts)
@@ -154,11 +159,6 @@ def proposal_effect(coefficients: dict) -> type[Effect]:
     Proposal.__module__ = __name__
     _CLASSES[cls_name] = Proposal
     return Proposal
-
-
-def from_stored(entry: dict) -> type[Effect]:
-    """The proposal of a model.json ``effects.proposal`` entry (its parameter names are its terms)."""
-    return proposal_effect(entry)
 
 
 def from_diagnosis(path) -> type[Effect]:
