@@ -37,6 +37,20 @@ def displacement(p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray):
     return d, J
 
 
+def integrate(v: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """(n, 3) displacement in the start frame of steps with body velocities ``v`` (n, k, 3), each step along
+    the heading at its start (as :func:`displacement`; lateral velocity allowed), and the (n, k, 3) pose of
+    every step's start in that frame."""
+    turn = v[..., 2] * dt
+    phi = np.cumsum(turn, axis=1) - turn
+    c, s = np.cos(phi), np.sin(phi)
+    dx = (c * v[..., 0] - s * v[..., 1]) * dt
+    dy = (s * v[..., 0] + c * v[..., 1]) * dt
+    x, y = np.cumsum(dx, axis=1), np.cumsum(dy, axis=1)
+    starts = np.stack([x - dx, y - dy, phi], axis=-1)
+    return np.column_stack([x[:, -1], y[:, -1], phi[:, -1] + turn[:, -1]]), starts
+
+
 def relative(a: np.ndarray, b: np.ndarray):
     """Body-frame displacement of pose b from pose a, with its derivatives in GTSAM tangent space."""
     c, s = np.cos(a[:, 2]), np.sin(a[:, 2])

@@ -76,21 +76,24 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
                  str(tmp_path / "diag"), "--quiet"]) == 0
     diag = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     assert set(diag["channels"]) == {"forward", "lateral", "turn", "reading", "bearing"}
-    lag, lens = diag["candidates"]                           # most supported first
-    assert lag["effect"] == "actuator_lag" and lag["delta_bic"] < -10 and lens["effect"] == "lens_distortion"
+    lag = diag["candidates"][0]                              # most supported first
+    assert lag["effect"] == "actuator_lag" and lag["delta_bic"] < -10
+    assert {c["effect"] for c in diag["candidates"]} == {"actuator_lag", "lens_distortion", "battery_fade",
+                                                          "camera_latency", "landmark_offset", "surface_friction"}
     assert lag["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
     assert lag["heldout_nll_drop"] is None and "continuous" in lag["heldout_skipped"]
-    assert "battery_fade" in diag["not_applicable"]
+    assert "range_dependent_noise" in diag["not_applicable"]
     pred = diag["predictive"]                                # open-loop error grows with the horizon
     assert pred["horizons_s"][0] == 0 and set(pred["channels"]) == {"reading", "bearing"}
     assert all(v[-1] > v[0] for v in pred["channels"].values())
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
 
 
-def test_other_effects_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
+def test_noise_only_effects_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
     d, _ = lag_floor
-    assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "battery_fade", "--quiet"]) == 2
-    assert "only actuator_lag, lens_distortion and regional_motion_noise" in capsys.readouterr().err
+    assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "false_detections",
+                 "--quiet"]) == 2
+    assert "noise-only effect; on continuous-command logs only regional_motion_noise" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
 
 
@@ -112,7 +115,7 @@ def test_lens_rows_jacobian_matches_numerical():
     lay = CT.layout(log, CT.COARSE_KNOT_DT)
     problem = CT.Problem(log, lay, m)
     st = CT.state(log.truth[lay.knots, 1:] + 0.01, m)
-    _, _, re, (Jp, Jc), _, _, _ = problem.rows(st)
+    _, _, re, (Jp, Jc, _), _, _, _ = problem.rows(st)
     assert np.all(robust.huber(re) == 1.0)
 
     def reading_rows(poses=st.poses, poly=st.poly):

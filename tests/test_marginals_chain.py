@@ -18,6 +18,7 @@ from casm_graph.fit.solve import RIDGES, chain_marginals, marginals
 from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver
 from casm_graph.graph import noise
 from casm_graph.graph import table as G
+from casm_graph.models.effects import get as get_effect
 from casm_graph.models.model import paper_start
 
 RTOL = 1e-6
@@ -85,6 +86,28 @@ def test_floor_graph_marginals_equal_gtsam():
         np.testing.assert_allclose(m.marginalCovariance(key), mg.marginalCovariance(key), rtol=RTOL,
                                    atol=RTOL * np.abs(mg.marginalCovariance(key)).max())
     np.testing.assert_allclose(m.marginalCovariance(X(5)), ref[5])
+
+
+@pytest.mark.parametrize("hooked", [(), ("battery_fade", "camera_latency")])
+def test_floor_graph_damped_step_equals_gtsam(hooked):
+    """The continuous graph's own elimination (what least_squares uses) solves GTSAM's damped linear graph."""
+    log, _ = cg.simulate("floor", minutes=1, seed=2)
+    effects = [get_effect(n)(log) for n in hooked]
+    lay = CT.layout(log, CT.COARSE_KNOT_DT)
+    m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=0.95),
+                                  reading_poly=np.array([0.01, 1.0, 0.0, 0.0]))
+    st = CT.state(log.truth[lay.knots, 1:] + 0.02, m, effects)
+    st.theta[:] = 0.01
+    problem = CT.Problem(log, lay, m, None, st.poses, effects)
+    lam = 1e-3
+    ours = problem.retract(st, problem.solve_damped(problem.normal_equations(st), lam))
+    g = problem.linearize(st)
+    for key, dim in problem.keys_dims():
+        g.add(key, np.sqrt(lam) * np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim))
+    theirs = problem.retract(st, g.optimize())
+    for a, b in ((ours.poses, theirs.poses), (ours.params, theirs.params), (ours.poly, theirs.poly),
+                 (ours.theta, theirs.theta)):
+        np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
 
 
 def tiny(pin: np.ndarray):

@@ -57,10 +57,11 @@ def test_the_own_velocity_is_not_a_term_and_bad_terms_fail_in_one_line(tmp_path)
     assert not (tmp_path / "r").exists()
     (tmp_path / "diag" / "diagnosis.json").write_text(json.dumps({"proposal": {"terms": {
         "forward: v_forward*cos(heading)": 0.05}}}))
-    generate(tmp_path / "cont", kind="continuous", minutes=0.5, seed=1)       # continuous fits take no proposal yet
+    generate(tmp_path / "cont", kind="continuous", minutes=0.5, seed=1)       # continuous fits take it through its hook
     assert main(["calibrate", str(tmp_path / "cont"), "--out", str(tmp_path / "r"), "--effect", "proposal", "--quiet",
-                 "--proposal", str(tmp_path / "diag")]) == 2
-    assert not (tmp_path / "r").exists()
+                 "--proposal", str(tmp_path / "diag")]) == 0
+    got = json.loads((tmp_path / "r" / "model.json").read_text())["effects"]["proposal"]
+    assert set(got) == {"forward: v_forward*cos(heading)"}
 
 
 @pytest.mark.science

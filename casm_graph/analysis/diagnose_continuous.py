@@ -17,7 +17,6 @@ import time
 
 import numpy as np
 
-import factors
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (Candidate, Diagnosis, channel_report, lookalike_words, lookalikes,
@@ -28,7 +27,7 @@ from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
 from casm_graph.fit.solve import least_squares
 from casm_graph.io.log import Log
-from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects import REGISTRY, of_model
 from casm_graph.models.model import Model
 
 COMMAND_CHANGE = 0.1
@@ -51,7 +50,7 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     """Whitened residual channels of the continuous graph with the INTERFACE covariates it has."""
     lay = problem.lay
     P = st.poses
-    e, _ = factors.command.error(P[:-1], P[1:], st.params, problem.Bv, problem.Bw, lay.seg_dt)
+    e = problem.motion_residual(st)
     v = model.command.velocities(log.controls, log.dt)
     seg_v = (v[lay.seg_idx] * lay.seg_dt[:, :, None]).sum(axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
     t = log.pose_times[lay.knots[:-1]] - log.t[0]
@@ -63,7 +62,7 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
         out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov, command=seg_v[:, k],
                             span=lay.seg_time)
     pose = P[lay.obs_knot]
-    res = CT.sighting_residuals(log, pose, model)
+    res = CT.sighting_residuals(log, pose, model, problem.effects)
     dist, bearing = res["distance"], res["bearing"]
     vo = v[np.minimum(log.obs_step, log.steps - 1)]
     ot = log.obs_t - log.t[0]
@@ -79,32 +78,60 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     return out
 
 
+def hooked_effects(log: Log, model: Model, extra_effects=()) -> list:
+    """Instances of the model's effects that act through their hooks on this log (not the profiled or noise ones)."""
+    entries = {n: e for n, e in model.effects.items() if n not in CT.EFFECTS and n not in CT.NOISE_EFFECTS}
+    return [cls(log) for cls in of_model(entries, extra_effects)]
+
+
+def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
+    """Effects fitted through their hooks that may be tried on ``log`` (catalog and ``extra_effects``, not in the
+    model yet), and the others with the reason each is skipped."""
+    tried, skipped = [], {}
+    classes = {**{n: c for n, c in REGISTRY.items() if n not in CT.EFFECTS}, **{c.name: c for c in extra_effects}}
+    for name, cls in sorted(classes.items()):
+        if name in model.effects:
+            continue
+        e = cls(log)
+        if name in CT.NOISE_EFFECTS:
+            skipped[name] = "added on request (calibrate --effect), not diagnosed"
+        elif e.noise_only:
+            skipped[name] = "noise-only effects are not fitted on continuous-command logs yet"
+        elif e.applicable(log):
+            skipped[name] = e.applicable(log)
+        else:
+            tried.append(e)
+    return tried, skipped
+
+
 def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
-             proposal_options: ProposalOptions | None = None) -> Diagnosis:
-    """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate effects."""
+             proposal_options: ProposalOptions | None = None, extra_effects=()) -> Diagnosis:
+    """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate
+    effects: the profiled ones (:data:`casm_graph.fit.continuous.EFFECTS`) by their profile, every other
+    applicable least-squares effect fitted through its hooks on the same coarse graph."""
     t0 = time.perf_counter()
     if progress is not None:
         progress.stage("refit model", None)
+    own = hooked_effects(log, model, extra_effects)
     lay = CT.layout(log, CT.FULL_KNOT_DT)
-    use = CT.gate(log, poses[log.obs_step], model)
-    problem = CT.Problem(log, lay, model, use, poses[lay.knots])
-    st, _ = least_squares(problem, CT.state(poses[lay.knots], model), max_iterations=SETTLE_ITERATIONS)
-    model = CT.with_state(model, st)
+    use = CT.gate(log, poses[log.obs_step], model, effects=own)
+    problem = CT.Problem(log, lay, model, use, poses[lay.knots], own)
+    st, _ = least_squares(problem, CT.state(poses[lay.knots], model, own), max_iterations=SETTLE_ITERATIONS)
+    model = CT.with_state(model, st, own)
     full = CT.fill_in(log, model, lay.knots, st.poses)
     base = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
     chs = channels(log, problem, st, model)
     rep = channel_report(chs)
     struct = structures(rep)
-    skipped = {n: ("added on request (calibrate --effect), not diagnosed" if n in CT.NOISE_EFFECTS else
-                   "not available for continuous commands") for n in sorted(REGISTRY) if n not in CT.EFFECTS}
+    hooked, skipped = hooked_candidates(log, model, extra_effects)
     skipped.update({n: f"needs the {' and '.join(CT.missing_channels(n, log.channels))} channel(s), which this log "
                        f"does not measure" for n in CT.EFFECTS if CT.missing_channels(n, log.channels)})
     cands = []
     todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped]
-    if progress is not None and todo:
-        progress.stage("candidates", len(todo), unit="effects")
+    if progress is not None and todo + hooked:
+        progress.stage("candidates", len(todo) + len(hooked), unit="effects")
     for name in todo:
-        prof = CT.profile(log, base, name)
+        prof = CT.profile(log, base, name, own)
         eff = REGISTRY[name]
         (param,) = eff.params
         cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=prof.delta_bic,
@@ -113,9 +140,27 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
                                heldout_skipped="held-out folds are not run for continuous-command logs"))
         if progress is not None:
             progress.step(1)
+    if hooked:
+        coarse = CT.layout(log, CT.COARSE_KNOT_DT)
+        cuse = CT.gate(log, full[log.obs_step], model, effects=own)
+        start = full[coarse.knots]
+        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own)
+        n = (3 * (coarse.n_poses - 1) + int((cuse[0] & ~np.isnan(log.obs_reading)).sum())
+             + int((cuse[1] & ~np.isnan(log.obs_bearing)).sum()))
+        for e in hooked:
+            ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e])
+            gain = float(ll - ll0)
+            cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
+                                   heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
+                                   parameters=dict(m.effects.get(e.name, {})),
+                                   heldout_skipped="held-out folds are not run for continuous-command logs"))
+            if progress is not None:
+                progress.step(1)
     cands.sort(key=lambda c: c.delta_bic)
-    v, words = verdict(cands, struct, {n: REGISTRY[n].explains for n in CT.EFFECTS if n not in skipped})
-    alike = lookalikes(cands, v, {n: REGISTRY[n].distinguished_by for n in CT.EFFECTS})
+    names = [*(n for n in CT.EFFECTS if n not in skipped), *(e.name for e in hooked)]
+    kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
+    v, words = verdict(cands, struct, {n: kinds[n].explains for n in names})
+    alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names})
     words += lookalike_words(alike)
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
@@ -129,7 +174,7 @@ def open_loop_error(log: Log, problem: CT.Problem, model: Model, poses: np.ndarr
     """:func:`casm_graph.analysis.predictive.predictive` of the command map (its lag included) from ``poses``
     (T+1, 3), the sightings the gate kept."""
     def residuals(trajectory):
-        res = CT.sighting_residuals(log, trajectory[log.obs_step], model)
+        res = CT.sighting_residuals(log, trajectory[log.obs_step], model, problem.effects)
         return {"reading": np.where(problem.r_sel, res["reading"], np.nan),
                 "bearing": np.where(problem.b_sel, res["bearing_residual"], np.nan)}
     return predictive(poses, CT.step_velocities(log, model), log.dt, residuals)

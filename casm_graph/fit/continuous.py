@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
 import scipy.sparse as sp
+from scipy.optimize import minimize_scalar
 from gtsam.symbol_shorthand import C, M, X
 
 import factors
@@ -29,7 +30,7 @@ from casm_graph.fit import windows as W
 from casm_graph.fit.methods.base import Fit, Progress
 from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
 from casm_graph.fit.solve import chain_marginals, least_squares
-from casm_graph.graph import noise, robust
+from casm_graph.graph import augmented, chain, noise, robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.command_model import CommandModel, for_commands
@@ -91,6 +92,7 @@ class State:
     poses: np.ndarray        # (K, 3)
     params: np.ndarray       # (P,) command-model coefficients
     poly: np.ndarray         # (D+1,)
+    theta: np.ndarray = field(default_factory=lambda: np.zeros(0))   # the effects' parameters (augmented.theta_from_model)
 
 
 class Problem:
@@ -102,11 +104,12 @@ class Problem:
     """
 
     def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None,
-                 poses: np.ndarray | None = None):
+                 poses: np.ndarray | None = None, effects=()):
         self.log, self.lay = log, lay
         cm: CommandModel = model.command
         bv, bw = cm.basis(log.controls, log.dt)
         self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
+        self._effects(log, lay, model, list(effects), bv, bw)
         ref = float(np.median(log.dt))
         self.motion_sigma = (np.asarray(model.motion_noise, float)[None, :]
                              * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None])
@@ -132,27 +135,161 @@ class Problem:
         self.lens_k = lens_k(model)
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
-        self.p_mean = nominal.params
-        self.p_sigma = PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
+        self.p_mean = np.concatenate([nominal.params, self.theta_prior[0]])
+        self.p_sigma = np.concatenate([PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef))),
+                                       self.theta_prior[1]])
+        self.n_m = self.n_params + len(self.ls_index)      # the vector variable M(0): command map, effect parameters
+
+    def _effects(self, log: Log, lay: Layout, model: Model, effects: list, bv: np.ndarray, bw: np.ndarray) -> None:
+        """The hooked effects' parameter layout, priors and the context their hooks read (step and sighting)."""
+        self.effects = effects
+        self.slices = augmented.parameter_slices(effects)
+        self.ls_index = np.concatenate([np.arange(s.start, s.stop) for e, s in zip(effects, self.slices)
+                                        if not e.noise_only] + [np.zeros(0, int)]).astype(int)
+        self.motion_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "motion"]
+        self.sensor_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "sensor"]
+        self.theta_prior = augmented.parameter_prior(effects, self.slices)
+        if self.motion_effects:          # step context, one row per slot of the padded segments
+            c = log.controls
+            change = np.concatenate([[True], np.any(c[1:] != c[:-1], axis=1)])
+            run0 = np.maximum.accumulate(np.where(change, np.arange(len(c)), 0))
+            prev = np.maximum(run0 - 1, 0)
+            t0 = log.pose_times[:-1] - log.pose_times[0]
+            idx = lay.seg_idx
+            self.m_ctx = {"t": t0[idx].ravel(), "since": (t0 - t0[run0])[idx].ravel(),
+                          "dt": np.where(lay.seg_dt > 0, lay.seg_dt, float(np.median(log.dt))).ravel()}
+            self.Bv_prev, self.Bw_prev = bv[prev][idx], bw[prev][idx]
+        if self.sensor_effects:
+            step = np.clip(log.obs_step - 1, 0, log.steps - 1)
+            self.Bv_obs, self.Bw_obs = bv[step], bw[step]
+            pan = log.obs_pan if log.obs_pan is not None else np.zeros(len(log.obs_t))
+            self.s_ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index,
+                          "pan": np.nan_to_num(pan)}     # no pan logged: a fixed camera (image angle = bearing)
+
+    def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
+        """(..., 3) body velocity of basis rows under command parameters ``p`` (no sideways motion)."""
+        a, b = p[:Bv.shape[-1]], p[Bv.shape[-1]:self.n_params]
+        v = Bv @ a
+        return np.stack([v, np.zeros_like(v), Bw @ b], axis=-1)
+
+    def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """(S, 3) displacement of every segment under command map ``p`` and the motion effects at ``theta``,
+        each step's context pose placed along the segment by the map alone from the segment's ``start`` pose."""
+        v0 = self._velocities(p, self.Bv, self.Bw)
+        _, rel = factors.command.integrate(v0, self.lay.seg_dt)
+        c, s = np.cos(start[:, 2])[:, None], np.sin(start[:, 2])[:, None]
+        pose = np.stack([start[:, 0:1] + c * rel[..., 0] - s * rel[..., 1],
+                         start[:, 1:2] + s * rel[..., 0] + c * rel[..., 1], start[:, 2:3] + rel[..., 2]], axis=-1)
+        fn = augmented.motion_function(self.motion_effects, self.m_ctx, theta)
+        v = fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.Bw_prev).reshape(-1, 3),
+               pose.reshape(-1, 3)).reshape(v0.shape)
+        return factors.command.integrate(v, self.lay.seg_dt)[0]
+
+    def _motion_with_effects(self, st: State):
+        """Motion residuals and Jacobians (Ha, Hb, Hm over M(0)) through the motion effects' hooks; the
+        derivatives are central differences of the vectorised forward pass (few parameters)."""
+        P = st.poses
+        rel, Ha, Hb = factors.command.relative(P[:-1], P[1:])
+        d = self._segment_motion(st.params, st.theta, P[:-1])
+        e = np.column_stack([rel[:, :2] - d[:, :2], wrap(rel[:, 2] - d[:, 2])])
+        h = factors.effect_motion.STEP
+        for c in range(3):
+            dp = (self._segment_motion(st.params, st.theta, factors.effect_motion._body_step(P[:-1], c, h))
+                  - self._segment_motion(st.params, st.theta, factors.effect_motion._body_step(P[:-1], c, -h)))
+            Ha[:, :, c] -= dp / (2 * h)
+        Hm = np.zeros((len(e), 3, self.n_m))
+        for j in range(self.n_m):
+            p, th = st.params.copy(), st.theta.copy()
+            if j < self.n_params:
+                step = h * max(1.0, abs(p[j]))
+                p[j] += step
+                plus = self._segment_motion(p, th, P[:-1])
+                p[j] -= 2 * step
+                minus = self._segment_motion(p, th, P[:-1])
+            else:
+                col = self.ls_index[j - self.n_params]
+                if not any(s.start <= col < s.stop for _, s in self.motion_effects):
+                    continue
+                step = h * max(1.0, abs(th[col]))
+                th[col] += step
+                plus = self._segment_motion(p, th, P[:-1])
+                th[col] -= 2 * step
+                minus = self._segment_motion(p, th, P[:-1])
+            Hm[:, :, j] = -(plus - minus) / (2 * step)
+        return e, [Ha, Hb, Hm]
 
     def rows(self, st: State, robust_weights: bool = True):
         """Whitened rows: motion (ae, aJ), readings and bearings (re, rJ, be, bJ; Huber-weighted unless
         ``robust_weights`` is false), priors pe."""
         P = st.poses
-        e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
+        if self.motion_effects:
+            e, J = self._motion_with_effects(st)
+        else:
+            e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
+            J[2] = np.concatenate([J[2], np.zeros((len(e), 3, self.n_m - self.n_params))], axis=2)
         w = 1.0 / self.motion_sigma
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         re, rJ, be, bJ = self.sightings(st)
         if robust_weights:
             w = robust.huber(re)
-            re, rJ = re * w, [rJ[0] * w[:, None], rJ[1] * w[:, None]]
+            re, rJ = re * w, [j * w[:, None] for j in rJ]
             w = robust.huber(be)
-            be, bJ = be * w, bJ * w[:, None]
-        pe = np.concatenate([(st.params - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
+            be, bJ = be * w, [j * w[:, None] for j in bJ]
+        m = np.concatenate([st.params, st.theta[self.ls_index]])
+        pe = np.concatenate([(m - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
         return ae, aJ, re, rJ, be, bJ, pe
 
+    def motion_residual(self, st: State) -> np.ndarray:
+        """(S, 3) motion residual of every segment (body-frame pose difference minus the model's), unwhitened."""
+        if self.motion_effects:
+            return self._motion_with_effects(st)[0]
+        P = st.poses
+        return factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)[0]
+
     def sightings(self, st: State):
-        """Whitened reading and bearing residuals and their Jacobians, before the Huber weights."""
+        """Whitened reading and bearing residuals and their Jacobians (reading: pose, polynomial, M(0);
+        bearing: pose, M(0)), before the Huber weights."""
+        if self.sensor_effects:
+            return self._sightings_with_effects(st)
+        nr, nb = len(self.r_z), len(self.b_z)
+        re, rJ, be, bJ = self._sightings(st)
+        return re, [*rJ, np.zeros((nr, self.n_m))], be, [bJ, np.zeros((nb, self.n_m))]
+
+    def _sightings_with_effects(self, st: State):
+        """The sightings through the sensor effects' hooks (:mod:`factors.effect_sighting`); a latency's velocity
+        is the command map's at the sighting, so its derivative reaches the map's parameters."""
+        log = self.log
+        velocity = self._velocities(st.params, self.Bv_obs, self.Bw_obs)
+        fn0 = augmented.sensor_function(self.sensor_effects, {**self.s_ctx, "velocity": velocity},
+                                        log.landmark_xy[log.landmark_index])
+        k = self.lens_k
+
+        def fn(theta, pose, poly, idx, velocity=None):
+            pred, bearing, d = fn0(theta, pose, poly, idx, velocity)
+            return (pred * (1.0 + k * wrap(bearing) ** 2) if k else pred), bearing, d
+
+        uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
+        ls_slices = [s for e, s in self.sensor_effects if not e.noise_only]
+        r_idx, b_idx = np.flatnonzero(self.r_sel), np.flatnonzero(self.b_sel)
+        (er, Jr), (eb, Jb) = factors.effect_sighting.error(
+            fn, st.poses, st.poly, st.theta, self.ls_index, ls_slices, self.lay.obs_knot, r_idx, b_idx,
+            log.obs_reading, log.obs_bearing, True, velocity if uses_velocity else None)
+        nv = self.Bv.shape[-1]
+
+        def m_cols(J, idx):
+            out = np.zeros((len(idx), self.n_m))
+            out[:, :nv] = J["velocity"][:, 0:1] * self.Bv_obs[idx]
+            out[:, nv:self.n_params] = J["velocity"][:, 2:3] * self.Bw_obs[idx]
+            if J["theta"] is not None:
+                out[:, self.n_params:] = J["theta"]
+            return out
+
+        sr, sb = self.reading_sigma, self.bearing_sigma
+        return (er / sr, [Jr["pose"] / sr, Jr["poly"] / sr, m_cols(Jr, r_idx) / sr],
+                eb / sb, [Jb["pose"] / sb, m_cols(Jb, b_idx) / sb])
+
+    def _sightings(self, st: State):
+        """Whitened reading and bearing residuals and their Jacobians without sensor effects."""
         P = st.poses
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
         if self.lens_k:          # reading = f(d) (1 + k ia^2), the image angle ia = bearing (fixed camera)
@@ -189,26 +326,76 @@ class Problem:
                 g.add(X(i), Ha[i], X(i + 1), Hb[i], M(0), Hp[i], -ae[i], unit3)
         D = self.n_poly
         knot = np.concatenate([self.r_knot, self.b_knot])
-        Jp = np.concatenate([rJ[0], bJ])
+        Jp = np.concatenate([rJ[0], bJ[0]])
         Jc = np.concatenate([rJ[1], np.zeros((len(self.b_knot), D))])
         e = np.concatenate([re, be])
         order = np.argsort(knot, kind="stable")
-        G.add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only)
+        Jm = np.concatenate([rJ[2], bJ[1]])[order] if self.sensor_effects else None
+        G.add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only, Jm)
         if poses_only:
             return g
-        Pn = self.n_params
+        Pn = self.n_m
         g.add(M(0), np.diag(1 / self.p_sigma), -pe[:Pn], gtsam.noiseModel.Unit.Create(Pn))
         g.add(C(0), np.eye(D) / POLY_PRIOR_SIGMA, -pe[Pn:], gtsam.noiseModel.Unit.Create(D))
         return g
 
-    def retract(self, st: State, delta: gtsam.VectorValues) -> State:
-        poses = G.retract_poses(st.poses, delta)
-        if not delta.exists(C(0)):
-            return State(poses, st.params, st.poly)
-        return State(poses, st.params + np.asarray(delta.at(M(0))), st.poly + np.asarray(delta.at(C(0))))
+    def normal_equations(self, st: State, poses_only: bool = False) -> tuple:
+        """Blocks of J^T J and J^T e: the knot chain (D, B), its coupling F to the parameters [M(0), C(0)], the
+        parameter block and the gradients, for the chain's own elimination (:func:`casm_graph.graph.chain.solve_arrow`,
+        GTSAM's solve with the parameters ordered last, without a factor per row built in Python)."""
+        ae, (Ha, Hb, Hm), re, rJ, be, bJ, pe = self.rows(st)
+        K = self.lay.n_poses
+        D = np.zeros((K, 3, 3))
+        D[:-1] += np.einsum("nki,nkj->nij", Ha, Ha)
+        D[1:] += np.einsum("nki,nkj->nij", Hb, Hb)
+        B = np.einsum("nki,nkj->nij", Ha, Hb)
+        gp = np.zeros((K, 3))
+        gp[:-1] += np.einsum("nki,nk->ni", Ha, ae)
+        gp[1:] += np.einsum("nki,nk->ni", Hb, ae)
+        knot = np.concatenate([self.r_knot, self.b_knot])
+        Jp = np.concatenate([rJ[0], bJ[0]])
+        eo = np.concatenate([re, be])
+        at = sp.csr_matrix((np.ones(len(knot)), (knot, np.arange(len(knot)))), shape=(K, len(knot)))
+        D += (at @ np.einsum("ni,nj->nij", Jp, Jp).reshape(len(knot), 9)).reshape(K, 3, 3)
+        gp += at @ (Jp * eo[:, None])
+        if poses_only:
+            return D, B, np.zeros((K, 3, 0)), gp, np.zeros((0, 0)), np.zeros(0)
+        n = self.n_m + self.n_poly
+        Ht = np.concatenate([Hm, np.zeros((len(ae), 3, self.n_poly))], axis=2)
+        Jt = np.concatenate([np.concatenate([rJ[2], rJ[1]], axis=1),
+                             np.concatenate([bJ[1], np.zeros((len(be), self.n_poly))], axis=1)])
+        F = np.zeros((K, 3, n))
+        F[:-1] += np.einsum("nki,nkj->nij", Ha, Ht)
+        F[1:] += np.einsum("nki,nkj->nij", Hb, Ht)
+        F += (at @ (Jp[:, :, None] * Jt[:, None, :]).reshape(len(knot), 3 * n)).reshape(K, 3, n)
+        At = Ht.reshape(-1, n)
+        prior = np.concatenate([1 / self.p_sigma, np.full(self.n_poly, 1 / POLY_PRIOR_SIGMA)])
+        Htt = At.T @ At + Jt.T @ Jt + np.diag(prior ** 2)
+        gt = At.T @ ae.ravel() + Jt.T @ eo + prior * pe
+        return D, B, F, gp, Htt, gt
+
+    def solve_damped(self, neq: tuple, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """Damped Gauss-Newton step (d poses, d parameters) from :meth:`normal_equations`."""
+        return chain.solve_arrow(*neq, lam)
+
+    def retract(self, st: State, delta) -> State:
+        """Apply a step given as a ``gtsam.VectorValues`` or as arrays (d poses (K, 3), d parameters or empty)."""
+        if isinstance(delta, gtsam.VectorValues):
+            poses = G.retract_poses(st.poses, delta)
+            if not delta.exists(C(0)):
+                return State(poses, st.params, st.poly, st.theta)
+            dm, dc = np.asarray(delta.at(M(0))), np.asarray(delta.at(C(0)))
+        else:
+            poses = G.retract_poses(st.poses, delta[0])
+            if not len(delta[1]):
+                return State(poses, st.params, st.poly, st.theta)
+            dm, dc = delta[1][:self.n_m], delta[1][self.n_m:]
+        theta = st.theta.copy()
+        theta[self.ls_index] += dm[self.n_params:]
+        return State(poses, st.params + dm[:self.n_params], st.poly + dc, theta)
 
     def keys_dims(self) -> list[tuple[int, int]]:
-        return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_params), (C(0), self.n_poly)]
+        return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_m), (C(0), self.n_poly)]
 
     def ordering(self, poses_only: bool = False) -> gtsam.Ordering:
         """Poses in time order, then the command map and polynomial (see :func:`casm_graph.graph.table.elimination_order`)."""
@@ -216,9 +403,10 @@ class Problem:
         return gtsam.Ordering(keys if poses_only else keys + [M(0), C(0)])
 
     def jacobian(self, st: State, poses_only: bool = False, robust_weights: bool = True):
-        """Whitened sparse Jacobian, residual and the row groups of each noise channel (see :meth:`rows`)."""
+        """Whitened sparse Jacobian, residual and the row groups of each noise channel (see :meth:`rows`);
+        columns: poses, then M(0) (command map, effect parameters), then the polynomial."""
         ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st, robust_weights)
-        K, Pn, D = self.lay.n_poses, self.n_params, self.n_poly
+        K, Pn, D = self.lay.n_poses, self.n_m, self.n_poly
         n_act, n_r, n_b = 3 * (K - 1), len(re), len(be)
         rows, cols, vals = [], [], []
 
@@ -232,12 +420,15 @@ class Problem:
         block(3 * seg, Ha, 3 * seg)
         block(3 * seg, Hb, 3 * (seg + 1))
         block(n_act + np.arange(n_r), rJ[0][:, None, :], 3 * self.r_knot)
-        block(n_act + n_r + np.arange(n_b), bJ[:, None, :], 3 * self.b_knot)
+        block(n_act + n_r + np.arange(n_b), bJ[0][:, None, :], 3 * self.b_knot)
         n_rows, n_cols = n_act + n_r + n_b, 3 * K
         e = np.concatenate([ae.ravel(), re, be])
         if not poses_only:
             block(3 * seg, Hp, np.full(K - 1, 3 * K))
             block(n_act + np.arange(n_r), rJ[1][:, None, :], np.full(n_r, 3 * K + Pn))
+            if self.sensor_effects:
+                block(n_act + np.arange(n_r), rJ[2][:, None, :], np.full(n_r, 3 * K))
+                block(n_act + n_r + np.arange(n_b), bJ[1][:, None, :], np.full(n_b, 3 * K))
             prior = np.concatenate([1 / self.p_sigma, np.full(D, 1 / POLY_PRIOR_SIGMA)])
             rows.append(n_rows + np.arange(Pn + D))
             cols.append(3 * K + np.arange(Pn + D))
@@ -299,30 +490,49 @@ def predicted_reading(model: Model, distance: np.ndarray, image_angle: np.ndarra
     return model.reading(distance) * (1.0 + lens_k(model) * image_angle ** 2)
 
 
-def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model) -> dict:
+def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects=()) -> dict:
     """Per sighting: distance and bearing from its pose, and the reading and bearing residuals
-    (measured minus predicted, in the sensor's units; NaN where not measured)."""
+    (measured minus predicted, in the sensor's units; NaN where not measured), through the sensor
+    hooks of ``effects`` (their parameters from ``model.effects``) when there are any."""
     rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
     d = np.hypot(rel[:, 0], rel[:, 1])
     bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
+    sensor = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.channel == "sensor"]
+    if sensor:
+        pan = np.nan_to_num(log.obs_pan) if log.obs_pan is not None else np.zeros(len(log.obs_t))
+        ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": pan,
+               "velocity": step_velocities(log, model)[np.clip(log.obs_step - 1, 0, log.steps - 1)]}
+        fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index])
+        pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
+                        np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
+        pred = pred * (1.0 + lens_k(model) * wrap(b) ** 2)
+        return {"distance": d, "bearing": bearing, "reading": log.obs_reading - pred,
+                "bearing_residual": wrap(log.obs_bearing - b)}
     return {"distance": d, "bearing": bearing, "reading": log.obs_reading - predicted_reading(model, d, bearing),
             "bearing_residual": wrap(log.obs_bearing - bearing)}
 
 
-def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GATE) -> tuple[np.ndarray, np.ndarray]:
+def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GATE,
+         effects=()) -> tuple[np.ndarray, np.ndarray]:
     """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
-    res = sighting_residuals(log, poses_at_obs, model)
+    res = sighting_residuals(log, poses_at_obs, model, effects)
     r = np.abs(res["reading"]) / model.reading_sigma
     b = np.abs(res["bearing_residual"]) / model.bearing_sigma
     return ~(r > z), ~(b > z)
 
 
-def state(poses: np.ndarray, model: Model) -> State:
-    return State(np.asarray(poses, float).copy(), model.command.params.copy(), np.asarray(model.reading_poly, float).copy())
+def state(poses: np.ndarray, model: Model, effects=()) -> State:
+    return State(np.asarray(poses, float).copy(), model.command.params.copy(),
+                 np.asarray(model.reading_poly, float).copy(), augmented.theta_from_model(list(effects), model))
 
 
-def with_state(model: Model, st: State) -> Model:
-    return model.with_(command=model.command.with_params(st.params), reading_poly=st.poly.copy())
+def with_state(model: Model, st: State, effects=()) -> Model:
+    """``model`` with the command map, polynomial and the hooked ``effects``' parameters of ``st``."""
+    model = model.with_(command=model.command.with_params(st.params), reading_poly=st.poly.copy())
+    if not effects:
+        return model
+    described = {e.name: e.describe(st.theta[s]) for e, s in zip(effects, augmented.parameter_slices(list(effects)))}
+    return model.with_(effects={**model.effects, **described})
 
 
 def step_velocities(log: Log, model: Model) -> np.ndarray:
@@ -397,7 +607,7 @@ def noise_levels(model: Model) -> np.ndarray:
 
 def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, rounds: int, iterations: int,
                     seed: int, label: str, trace: list, stages: list, progress: Progress,
-                    freeze: bool = False, last_noise: bool = True, settle: int = 0):
+                    freeze: bool = False, last_noise: bool = True, settle: int = 0, effects=()):
     """Rounds of LM, each followed by gating of outliers and re-estimating the noise levels.
 
     With ``settle`` > 0, up to that many more rounds run until no noise level moves by more than
@@ -409,22 +619,22 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
     problem = st = None
     r = 0
     while r < rounds:
-        problem = Problem(log, lay, model, use, poses)
+        problem = Problem(log, lay, model, use, poses, effects)
 
         def tick(c):
             trace.append(c)
             stages.append(label)
             progress.step(0, cost=c)
 
-        st, h = least_squares(problem, state(poses, model), max_iterations=iterations, on_iteration=tick,
+        st, h = least_squares(problem, state(poses, model, effects), max_iterations=iterations, on_iteration=tick,
                               freeze_parameters=freeze)
         its += h.iterations
         poses = st.poses
-        model = with_state(model, st)
+        model = with_state(model, st, effects)
         if r < rounds - 1 or last_noise:
             before = noise_levels(model)
             model = estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)
-            use = gate(log, poses[lay.obs_knot], model)
+            use = gate(log, poses[lay.obs_knot], model, effects=effects)
             moved = float(np.max(np.abs(np.log(noise_levels(model) / before))))
             if settle > 0 and r == rounds - 2 and moved > NOISE_TOL:
                 rounds, settle = rounds + 1, settle - 1
@@ -501,20 +711,7 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     pose_std = np.full_like(poses, np.nan)
     if marginals:
         progress.stage("marginals", None)
-        m, ridge = chain_marginals(problem, st)
-        if ridge:
-            warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=2)
-        body = np.empty((full.n_poses, 3))
-        cov_xy = np.empty((full.n_poses, 2, 2))
-        for i in range(full.n_poses):
-            cov = m.marginalCovariance(X(i))
-            body[i], cov_xy[i] = np.sqrt(np.diag(cov)), cov[:2, :2]
-        knot_std = world_std(kp, body, cov_xy)
-        t = log.pose_times
-        pose_std = np.column_stack([np.interp(t, t[full.knots], knot_std[:, j]) for j in range(3)])
-        pstd = np.sqrt(np.diag(m.marginalCovariance(M(0))))
-        cstd = np.sqrt(np.diag(m.marginalCovariance(C(0))))
-        model = model.with_(command=model.command.with_params(st.params, pstd), reading_poly_std=cstd)
+        model, pose_std, _ = with_marginals(log, full, kp, problem, st, model)
     sel = problem.r_sel
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[sel]
     ll = problem_log_likelihood(problem, st, model)
@@ -533,6 +730,29 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                       "start_slope": starts[best].slope,
                       "windows_placed": starts[best].windows_placed, "start_model": starts[best].model,
                       "start_poses": starts[best].poses, "knots": full.knots})
+
+
+def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Problem, st: State, model: Model):
+    """The model with the std of its command map and polynomial, the (T+1, 3) pose std (interpolated between
+    knots) and each hooked effect's parameter std, from the marginals of ``problem`` at ``st``."""
+    m, ridge = chain_marginals(problem, st)
+    if ridge:
+        warnings.warn(RIDGE_WARNING.format(ridge), RuntimeWarning, stacklevel=3)
+    body = np.empty((lay.n_poses, 3))
+    cov_xy = np.empty((lay.n_poses, 2, 2))
+    for i in range(lay.n_poses):
+        cov = m.marginalCovariance(X(i))
+        body[i], cov_xy[i] = np.sqrt(np.diag(cov)), cov[:2, :2]
+    knot_std = world_std(knot_poses, body, cov_xy)
+    t = log.pose_times
+    pose_std = np.column_stack([np.interp(t, t[lay.knots], knot_std[:, j]) for j in range(3)])
+    mstd = np.sqrt(np.clip(np.diag(m.marginalCovariance(M(0))), 0, None))
+    cstd = np.sqrt(np.diag(m.marginalCovariance(C(0))))
+    model = model.with_(command=model.command.with_params(st.params, mstd[:problem.n_params]), reading_poly_std=cstd)
+    pos = {int(c): problem.n_params + j for j, c in enumerate(problem.ls_index)}
+    effect_std = {e.name: {p: float(mstd[pos[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
+                  for e, s in zip(problem.effects, problem.slices) if not e.noise_only}
+    return model, pose_std, effect_std
 
 
 # --------------------------------------------------------------------------- effects for continuous commands
@@ -554,18 +774,25 @@ def missing_channels(name: str, channels) -> tuple[str, ...]:
     return tuple(c for c in NEEDS.get(name, ()) if c not in channels)
 
 
-def check_effects(names, channels=("reading", "bearing")) -> None:
-    """LogError unless every name is an effect a continuous-command log measuring ``channels`` can take."""
-    names = list(names)
-    other = sorted(set(names) - set(EFFECTS) - set(NOISE_EFFECTS))
-    if other:
-        raise LogError(f"--effect {', '.join(other)}: for continuous commands only "
-                       f"{', '.join(EFFECTS + NOISE_EFFECTS[:-1])} and {NOISE_EFFECTS[-1]} are available")
-    for n in names:
-        lack = missing_channels(n, channels)
-        if lack:
-            raise LogError(f"--effect {n}: needs the {' and '.join(lack)} channel(s), which this log does not "
-                           f"measure (observations.csv has only {', '.join(channels)})")
+def check_effects(effects, log: Log) -> None:
+    """LogError unless every effect (name, class or instance) is one ``log`` can take: the profiled and noise
+    effects of this module when the log measures the channels they need, or any least-squares effect whose
+    own ``applicable`` accepts the log (fitted through its hooks, :func:`fit_hooked`)."""
+    for e in effects:
+        name = e if isinstance(e, str) else e.name
+        if name in EFFECTS or name in NOISE_EFFECTS:
+            lack = missing_channels(name, log.channels)
+            if lack:
+                raise LogError(f"--effect {name}: needs the {' and '.join(lack)} channel(s), which this log does not "
+                               f"measure (observations.csv has only {', '.join(log.channels)})")
+            continue
+        inst = augmented.instantiate([e], log)[0]
+        if inst.noise_only:
+            raise LogError(f"--effect {name}: a noise-only effect; on continuous-command logs only "
+                           f"{', '.join(NOISE_EFFECTS)} is available so far")
+        why = inst.applicable(log)
+        if why:
+            raise LogError(f"--effect {name} cannot be fitted on {log.source or 'this log'}: {why}")
 
 
 def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Model) -> Model:
@@ -579,8 +806,9 @@ def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Mo
 
 
 def with_effect(model: Model, name: str, value: float) -> Model:
-    """``model`` with one continuous-log effect's parameter set (0 switches it off)."""
-    check_effects([name])
+    """``model`` with one profiled effect's parameter set (0 switches it off)."""
+    if name not in EFFECTS:
+        raise ValueError(f"{name!r} is not profiled on continuous-command logs ({', '.join(EFFECTS)} are)")
     param = {"actuator_lag": "tau", "lens_distortion": "k"}[name]
     effects = {**{k: v for k, v in model.effects.items() if k != name},
                **({name: {param: float(value)}} if value else {})}
@@ -608,33 +836,25 @@ class Profile:
         return float(-2 * self.gain + np.log(self.n_data))
 
 
-def profile(log: Log, fit: Fit, name: str) -> Profile:
-    """Profile one continuous-log effect's parameter on the coarse graph of a fitted log.
+def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
+    """Profile one continuous-log effect's parameter on the coarse graph of a fitted log (with the hooked ``effects``
+    the model already has).
 
     Every evaluation sets the parameter, keeps ``fit``'s set-aside sightings, lets poses, command
     map and polynomial re-settle (LM from ``fit``'s own), moves each noise level to its
     maximum-likelihood value and re-settles once more; its value is the log-likelihood with the
     noise levels concentrated out, so two settings compare as a likelihood ratio on the same data.
-    A grid brackets the maximum, golden-section search refines it.
+    A grid brackets the maximum, Brent's bounded search refines it.
     """
     lay = layout(log, COARSE_KNOT_DT)
-    use = gate(log, fit.poses[log.obs_step], fit.model)
+    use = gate(log, fit.poses[log.obs_step], fit.model, effects=effects)
     start = fit.poses[lay.knots]
     seen: dict[float, float] = {}
 
     def value(x: float) -> float:
         x = round(float(x), 5)
         if x not in seen:
-            m = with_effect(fit.model, name, x)
-            problem = Problem(log, lay, m, use, start)
-            try:
-                st, _ = least_squares(problem, state(start, m), max_iterations=PROFILE_ITERATIONS)
-                m = _ml_noise(problem, st, with_state(m, st))
-                problem = Problem(log, lay, m, use, st.poses)
-                st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
-                seen[x] = _concentrated_log_likelihood(problem, st)
-            except RuntimeError:            # GTSAM: the graph is indeterminate at this setting, no maximum here
-                seen[x] = -np.inf
+            seen[x] = settled_log_likelihood(log, lay, with_effect(fit.model, name, x), use, start, effects)[0]
         return seen[x]
 
     grid = list(PROFILE_GRID[name])
@@ -649,20 +869,30 @@ def profile(log: Log, fit: Fit, name: str) -> Profile:
         value(lo_b)
         i += 1
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    g = (np.sqrt(5) - 1) / 2
-    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-    while hi - lo > PROFILE_TOL[name]:
-        if value(a) >= value(b):
-            hi, b = b, a
-            a = hi - g * (hi - lo)
-        else:
-            lo, a = a, b
-            b = lo + g * (hi - lo)
+    if hi - lo > PROFILE_TOL[name]:       # Brent's bounded search in the bracket (parabolic steps, golden fallback)
+        minimize_scalar(lambda x: -value(x), bounds=(lo, hi), method="bounded",
+                        options={"xatol": PROFILE_TOL[name] / 2})
     best = max(seen, key=seen.get)
     n = (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
          + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
     return Profile(effect=name, value=float(best), gain=float(seen[best] - value(0.0)), n_data=n,
                    grid=sorted(seen.items()))
+
+
+def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=()):
+    """(log-likelihood with the noise levels concentrated out, model) after settling ``model`` with ``effects``
+    on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
+    fixed), so two models compare as a likelihood ratio on the same data; -inf where GTSAM finds the graph
+    indeterminate."""
+    problem = Problem(log, lay, model, use, start, effects)
+    try:
+        st, _ = least_squares(problem, state(start, model, effects), max_iterations=PROFILE_ITERATIONS)
+        model = _ml_noise(problem, st, with_state(model, st, effects))
+        problem = Problem(log, lay, model, use, st.poses, effects)
+        st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
+    except RuntimeError:
+        return -np.inf, model
+    return _concentrated_log_likelihood(problem, st), with_state(model, st, effects)
 
 
 def _group_sums(problem: Problem, st: State) -> dict:
@@ -693,18 +923,53 @@ def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
     return float(out)
 
 
+HOOKED_ROUNDS = 3       # rounds of the fine graph with the hooked effects' parameters free (then up to FULL_SETTLE
+                        # more until the noise levels settle), from the fit without them
+
+
+def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress | None = None,
+               marginals: bool = True) -> Fit:
+    """``base`` refitted with ``effects`` acting through their hooks (velocity, geometry, reading): their
+    least-squares parameters join the command map in the fine graph, warm-started at their starts."""
+    progress = progress or Progress()
+    t0 = time.perf_counter()
+    effects = augmented.instantiate(effects, log)
+    full = layout(log, FULL_KNOT_DT)
+    model = with_state(base.model, state(base.poses[full.knots], base.model, effects), effects)
+    trace, stages = [], []
+    progress.stage("effects", HOOKED_ROUNDS)
+    model, kp, problem, st, its, converged = optimise_rounds(
+        log, full, model, base.poses[full.knots], HOOKED_ROUNDS, FULL_ITERATIONS, seed + 300, "effects", trace,
+        stages, progress, last_noise=False, settle=FULL_SETTLE, effects=effects)
+    poses = fill_in(log, model, full.knots, kp)
+    pose_std, effect_std = np.full_like(poses, np.nan), {}
+    if marginals:
+        progress.stage("marginals", None)
+        model, pose_std, effect_std = with_marginals(log, full, kp, problem, st, model)
+    ll = problem_log_likelihood(problem, st, model)
+    model = model.with_(fit={**base.model.fit, "iterations": base.iterations + its,
+                             "seconds": round(base.model.fit.get("seconds", 0) + time.perf_counter() - t0, 3),
+                             "log_likelihood": ll, "converged": converged, "effects_std": effect_std})
+    return Fit(model=model, poses=poses, pose_std=pose_std, cost=base.cost + trace, stages=base.stages + stages,
+               iterations=base.iterations + its, converged=converged, log_likelihood=ll,
+               notes={**base.notes, "base_log_likelihood": base.log_likelihood, "hooked_effects": effects})
+
+
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
                      progress: Progress | None = None, marginals: bool = True,
                      regions: RMN.Regions | None = None) -> Fit:
-    """``fit`` with continuous-log effects: fit without them, then for each profiled effect in turn
-    profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
+    """``fit`` with effects (names, classes or instances): fit without them, then for each profiled effect in
+    turn profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
     profiled: its regions (``regions``, default a 3 x 2 grid around the landmarks) start from the
-    latest fit's noise levels and the noise step of every round of one more fit sets their k's."""
+    latest fit's noise levels and the noise step of every round of one more fit sets their k's. Every other
+    effect acts through its hooks, its parameters fitted with the command map (:func:`fit_hooked`)."""
     progress = progress or Progress()
     start = start or start_model(log)
-    check_effects(effects)
-    profiled = [n for n in effects if n in EFFECTS]
-    noisy = [n for n in effects if n in NOISE_EFFECTS]
+    check_effects(effects, log)
+    named = [e if isinstance(e, str) else e.name for e in effects]
+    profiled = [n for n in named if n in EFFECTS]
+    noisy = [n for n in named if n in NOISE_EFFECTS]
+    hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
     out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects)
     profiles = []
     for i, name in enumerate(profiled):
@@ -713,11 +978,13 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         profiles.append(prof)
         start = with_effect(start, name, prof.value)
         out = fit(log, start, seed=seed, progress=progress,
-                  marginals=marginals and i == len(profiled) - 1 and not noisy)
+                  marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked)
     if noisy:
         before = out.log_likelihood
         start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals)
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked)
         out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
+    if hooked:
+        out = fit_hooked(log, out, hooked, seed=seed, progress=progress, marginals=marginals)
     out.notes["profiles"] = profiles
     return out

@@ -82,6 +82,60 @@ def parameter_slices(effects: list[Effect]) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
 
 
+def parameter_prior(effects: list[Effect], slices: list[slice]) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, sigma) of the prior on the least-squares effect parameters: each effect's own, else weak around 0."""
+    pm, ps = [np.zeros(0)], [np.zeros(0)]
+    for e, s in zip(effects, slices):
+        if e.noise_only:
+            continue
+        pr = e.prior()
+        if pr is None:
+            pm.append(np.zeros(s.stop - s.start))
+            ps.append(EFFECT_PRIOR_SCALE * np.maximum(np.asarray(e.scale, float), 1e-6))
+        else:
+            pm.append(np.asarray(pr[0], float))
+            ps.append(np.asarray(pr[1], float))
+    return np.concatenate(pm), np.concatenate(ps)
+
+
+def motion_function(motion_effects, ctx: dict, theta: np.ndarray):
+    """The velocity a step runs under ``motion_effects`` ((effect, slice) pairs) as a function of the
+    action model's velocity ``v``, the previous one, the pose and (optionally) the parameters."""
+
+    def bound(v, v_prev, pose, th=None):
+        c = {**ctx, "v_prev": v_prev, "pose": pose}
+        th = theta if th is None else th
+        for e, s in motion_effects:
+            v = e.velocity(th[s], v, c)
+        return v
+
+    return bound
+
+
+def sensor_function(sensor_effects, ctx: dict, landmark_xy: np.ndarray):
+    """Predicted reading, bearing and distance of observations ``idx`` under ``sensor_effects`` ((effect,
+    slice) pairs), as a function of the parameters, the poses and the polynomial; ``landmark_xy`` per observation."""
+
+    def fn(theta, pose, poly, idx, velocity=None):
+        c = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in ctx.items()}
+        c["pose"] = pose
+        if velocity is not None:
+            c["velocity"] = velocity[idx]
+        p, lm = pose, landmark_xy[idx]
+        for e, s in sensor_effects:
+            p, lm = e.geometry(theta[s], p, lm, c)
+        rel = lm - p[:, :2]
+        d = np.hypot(rel[:, 0], rel[:, 1])
+        bearing = np.arctan2(rel[:, 1], rel[:, 0]) - p[:, 2]
+        c.update(distance=d, bearing=wrap(bearing), image_angle=wrap(bearing - c["pan"]))
+        pred = np.polynomial.polynomial.polyval(d, poly)
+        for e, s in sensor_effects:
+            pred = e.reading(theta[s], pred, c)
+        return pred, bearing, d
+
+    return fn
+
+
 class EffectProblem:
     """One log, a model with noise levels held fixed, and effects; evaluated and linearised in numpy."""
 
@@ -126,20 +180,7 @@ class EffectProblem:
         self.weight = np.ones(n_obs)
         th0 = theta if theta is not None else theta_from_model(effects, model)
         self.theta_noise = np.asarray(th0, float).copy()
-        pm, ps = [], []
-        for e, s in zip(effects, self.slices):
-            if e.noise_only:
-                continue
-            pr = e.prior()
-            n = s.stop - s.start
-            if pr is None:
-                pm.append(np.zeros(n))
-                ps.append(EFFECT_PRIOR_SCALE * np.maximum(np.asarray(e.scale, float), 1e-6))
-            else:
-                pm.append(pr[0])
-                ps.append(pr[1])
-        self.prior_mean = np.concatenate(pm) if pm else np.zeros(0)
-        self.prior_sigma = np.concatenate(ps) if ps else np.zeros(0)
+        self.prior_mean, self.prior_sigma = parameter_prior(effects, self.slices)
 
     # ------------------------------------------------------------------ state
     def state(self, poses: np.ndarray, model: Model, theta: np.ndarray | None = None) -> AState:
@@ -157,20 +198,7 @@ class EffectProblem:
                                               st.velocities[self.prev_row], st.poses[:-1])
 
     def _motion_fn(self, st: AState):
-        effects, ctx = self.motion_effects, self.m_ctx
-
-        def fn(theta, v, v_prev, pose):
-            c = {**ctx, "v_prev": v_prev, "pose": pose}
-            for e, s in effects:
-                v = e.velocity(theta[s], v, c)
-            return v
-
-        full = st.theta
-
-        def bound(v, v_prev, pose, theta=None):
-            return fn(full if theta is None else theta, v, v_prev, pose)
-
-        return bound
+        return motion_function(self.motion_effects, self.m_ctx, st.theta)
 
     def sensor_context(self, st: AState) -> dict:
         """Context of every observation under ``st`` (velocity from the previous step)."""
@@ -180,26 +208,7 @@ class EffectProblem:
                 "velocity": v[step]}
 
     def _sensor_fn(self, ctx):
-        effects = self.sensor_effects
-
-        def fn(theta, pose, poly, idx, velocity=None):
-            c = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in ctx.items()}
-            c["pose"] = pose
-            if velocity is not None:
-                c["velocity"] = velocity[idx]
-            p, lm = pose, self.obs_lmxy[idx]
-            for e, s in effects:
-                p, lm = e.geometry(theta[s], p, lm, c)
-            rel = lm - p[:, :2]
-            d = np.hypot(rel[:, 0], rel[:, 1])
-            bearing = np.arctan2(rel[:, 1], rel[:, 0]) - p[:, 2]
-            c.update(distance=d, bearing=wrap(bearing), image_angle=wrap(bearing - c["pan"]))
-            pred = np.polynomial.polynomial.polyval(d, poly)
-            for e, s in effects:
-                pred = e.reading(theta[s], pred, c)
-            return pred, bearing, d
-
-        return fn
+        return sensor_function(self.sensor_effects, ctx, self.obs_lmxy)
 
     def predictions(self, st: AState) -> dict:
         """Predicted reading, bearing and distance of every observation (masked or not)."""

@@ -125,11 +125,11 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         if options.method != "graph":
             raise LogError(f"--method {options.method}: continuous commands (commands.csv 'v,w') are calibrated "
                            f"by the graph method only")
-        continuous.check_effects((cls.name for cls in classes), log.channels)
+        continuous.check_effects(options.effects, log)
         grid = parse_regions(options.regions, log)
         start = continuous.start_model(log, options.sensor_degree)
         if classes:
-            fit = continuous.fit_with_effects(log, start, [cls.name for cls in classes], seed=options.seed,
+            fit = continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
                                               progress=progress, regions=grid)
         else:
             fit = continuous.fit(log, start, seed=options.seed, progress=progress)

@@ -69,11 +69,15 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         if model.command is None:
             raise LogError(f"the model has no command map (action_model.kind 'command_poly') for {source}'s "
                            f"continuous commands; calibrate this log first")
+        unknown = unresolved(model.effects, extra_effects)
+        if unknown:
+            raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
         if poses is None:
             if progress is not None:
                 progress.stage("start trajectory", None)
             poses = continuous.fit(log, model, marginals=False).poses
-        diag = diagnose_continuous(log, model, poses, progress=progress, proposal_options=proposal_options)
+        diag = diagnose_continuous(log, model, poses, progress=progress, proposal_options=proposal_options,
+                                   extra_effects=extra_effects)
     else:
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
