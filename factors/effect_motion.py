@@ -18,7 +18,7 @@ def velocity(fn, v_own, v_prev, pose):
     return fn(v_own, v_prev, pose)
 
 
-def _body_step(pose, c, h):
+def body_step(pose, c, h):
     """``pose`` moved by ``h`` along body-frame tangent axis ``c`` (Pose2 retract to first order)."""
     p = pose.copy()
     cth, sth = np.cos(pose[:, 2]), np.sin(pose[:, 2])
@@ -43,7 +43,7 @@ def velocity_jacobians(fn, v_own, v_prev, pose, theta, columns):
             for sign in (1.0, -1.0):
                 a = [v_own.copy(), v_prev.copy(), pose]
                 if name == "pose":
-                    a[2] = _body_step(pose, c, sign * STEP)
+                    a[2] = body_step(pose, c, sign * STEP)
                 else:
                     a[0 if name == "own" else 1][:, c] += sign * STEP
                 args.append(fn(*a))

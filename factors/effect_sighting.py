@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import wrap
-from .effect_motion import STEP, _body_step
+from .effect_motion import STEP, body_step
 
 
 def error(fn, P, poly, theta, ls_index, ls_slices, obs_knot, r_idx, b_idx, z_reading, z_bearing,
@@ -29,8 +29,8 @@ def error(fn, P, poly, theta, ls_index, ls_slices, obs_knot, r_idx, b_idx, z_rea
     n = len(idx)
     Jp_r, Jp_b = np.empty((n, 3)), np.empty((n, 3))
     for c in range(3):
-        pr_p, b_p, _ = fn(theta, _body_step(pose, c, STEP), poly, idx)
-        pr_m, b_m, _ = fn(theta, _body_step(pose, c, -STEP), poly, idx)
+        pr_p, b_p, _ = fn(theta, body_step(pose, c, STEP), poly, idx)
+        pr_m, b_m, _ = fn(theta, body_step(pose, c, -STEP), poly, idx)
         Jp_r[:, c] = (pr_p - pr_m) / (2 * STEP)
         Jp_b[:, c] = wrap(b_p - b_m) / (2 * STEP)
     Jc = np.empty((n, len(poly)))

@@ -216,3 +216,37 @@ def test_issue7_targets_with_the_effects_the_diagnosis_finds(robot, tmp_path):
           f"{100 * me['v']['fraction']:.1f} %, position {pr['calibrated_graph']:.3f} m vs identity-model graph "
           f"{pr['identity_graph']:.3f} m (ratio {ev['ratio_to_identity']:.2f}), effects {fit.model.effects}")
     assert ev["meets"] == {"turn": True, "speed": True, "half_identity": True}
+
+
+@needs_data
+@pytest.mark.science
+def test_a_user_effect_and_catalog_effects_fit_on_a_real_robot(robot1, tmp_path):
+    """Issue 20: the docs' user-written HeadingSlip and two catalog effects through ``cg.calibrate`` on robot 1's
+    first 4 minutes (continuous commands): finite values with their std in model.json, a log-likelihood no lower
+    than without them."""
+    import casm_graph as cg
+
+    class HeadingSlip(cg.Effect):
+        name = "heading_slip"
+        channel = "motion"
+        params = ("k",)
+        start, scale = (0.0,), (0.05,)
+        explains = (("forward", "heading"),)
+        physics = "The carpet pile runs along x: forward speed scales by 1 + k cos(heading)."
+
+        def velocity(self, theta, v, ctx):
+            return v * (1.0 + theta[0] * np.cos(ctx["pose"][:, 2]))[:, None]
+
+    whole = load(robot1)
+    log = whole.window(whole.t[0], whole.t[0] + 240.0)
+    base = cg.calibrate(log)
+    cal = cg.calibrate(log, effects=[HeadingSlip, "battery_fade", "camera_latency"])
+    std = cal.model.fit["effects_std"]
+    for name, param in (("heading_slip", "k"), ("battery_fade", "loss_per_minute"), ("camera_latency", "delay")):
+        value = cal.model.effects[name][param]
+        assert np.isfinite(value) and 0 < std[name][param] < 1.0, (name, value, std[name][param])
+    assert abs(cal.model.effects["heading_slip"]["k"]) < 0.2          # the robot has no carpet
+    assert cal.fit.log_likelihood > base.fit.log_likelihood - 10
+    cal.save(tmp_path / "run")
+    saved = json.loads((tmp_path / "run" / "model.json").read_text())
+    assert set(saved["effects"]) == {"heading_slip", "battery_fade", "camera_latency"}

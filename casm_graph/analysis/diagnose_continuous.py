@@ -27,7 +27,7 @@ from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
 from casm_graph.fit.solve import least_squares
 from casm_graph.io.log import Log
-from casm_graph.models.effects import REGISTRY, of_model
+from casm_graph.models.effects import REGISTRY
 from casm_graph.models.model import Model
 
 COMMAND_CHANGE = 0.1
@@ -78,12 +78,6 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     return out
 
 
-def hooked_effects(log: Log, model: Model, extra_effects=()) -> list:
-    """Instances of the model's effects that act through their hooks on this log (not the profiled or noise ones)."""
-    entries = {n: e for n, e in model.effects.items() if n not in CT.EFFECTS and n not in CT.NOISE_EFFECTS}
-    return [cls(log) for cls in of_model(entries, extra_effects)]
-
-
 def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
     """Effects fitted through their hooks that may be tried on ``log`` (catalog and ``extra_effects``, not in the
     model yet), and the others with the reason each is skipped."""
@@ -112,7 +106,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
     t0 = time.perf_counter()
     if progress is not None:
         progress.stage("refit model", None)
-    own = hooked_effects(log, model, extra_effects)
+    own = CT.hooked_effects(log, model, extra_effects)
     lay = CT.layout(log, CT.FULL_KNOT_DT)
     use = CT.gate(log, poses[log.obs_step], model, effects=own)
     problem = CT.Problem(log, lay, model, use, poses[lay.knots], own)

@@ -677,10 +677,11 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
 
     The noise levels are the channels the log measures, each sampled as in the table graph:
     reading and bearing sigma, forward, lateral and turn motion noise per median command step.
-    Effects' parameters (``actuator_lag``'s time constant, ``lens_distortion``'s k) stay as calibrated.
+    The profiled effects' parameters (``actuator_lag``'s time constant, ``lens_distortion``'s k) stay as
+    calibrated; hooked effects' parameters are integrated out with the command map (they are part of M(0)).
     """
 
-    integrated_out = ("poses (knots)", "command map", "sensor polynomial")
+    integrated_out = ("poses (knots)", "command map and hooked effects", "sensor polynomial")
 
     def set_aside(self) -> int:
         return self._set_aside
@@ -782,14 +783,17 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
         return np.hypot(*(pb.r_lm - self.state.poses[pb.r_knot, :2]).T)
 
 
-def continuous_likelihood(log: Log, model: Model, poses: np.ndarray,
-                          iterations: int = 10) -> ContinuousMarginalLikelihood:
+def continuous_likelihood(log: Log, model: Model, poses: np.ndarray, iterations: int = 10,
+                          own=()) -> ContinuousMarginalLikelihood:
     """:class:`ContinuousMarginalLikelihood` of a command-map ``model`` on ``log``, linearised at the MAP from
-    ``poses`` (T+1, 3) on the calibration's fine knots, sightings beyond the gate set aside as the fit does."""
+    ``poses`` (T+1, 3) on the calibration's fine knots, sightings beyond the gate set aside as the fit does;
+    the model's hooked effects (``own``: user classes among them) act, their parameters integrated out with
+    the command map."""
     lay = CT.layout(log, CT.FULL_KNOT_DT)
     kp = np.asarray(poses, float)[lay.knots]
-    r_use, b_use = CT.gate(log, np.asarray(poses, float)[log.obs_step], model)
+    effects = CT.hooked_effects(log, model, own)
+    r_use, b_use = CT.gate(log, np.asarray(poses, float)[log.obs_step], model, effects=effects)
     use = (r_use & model.has("reading"), b_use & model.has("bearing"))
-    problem = CT.Problem(log, lay, model, use, kp)
-    st, _ = least_squares(problem, CT.state(kp, model), max_iterations=iterations)
+    problem = CT.Problem(log, lay, model, use, kp, effects)
+    st, _ = least_squares(problem, CT.state(kp, model, effects), max_iterations=iterations)
     return ContinuousMarginalLikelihood(problem, st, model)

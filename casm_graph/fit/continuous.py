@@ -34,6 +34,7 @@ from casm_graph.graph import augmented, chain, noise, robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.command_model import CommandModel, for_commands
+from casm_graph.models.effects import of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
 
@@ -194,8 +195,8 @@ class Problem:
         e = np.column_stack([rel[:, :2] - d[:, :2], wrap(rel[:, 2] - d[:, 2])])
         h = factors.effect_motion.STEP
         for c in range(3):
-            dp = (self._segment_motion(st.params, st.theta, factors.effect_motion._body_step(P[:-1], c, h))
-                  - self._segment_motion(st.params, st.theta, factors.effect_motion._body_step(P[:-1], c, -h)))
+            dp = (self._segment_motion(st.params, st.theta, factors.effect_motion.body_step(P[:-1], c, h))
+                  - self._segment_motion(st.params, st.theta, factors.effect_motion.body_step(P[:-1], c, -h)))
             Ha[:, :, c] -= dp / (2 * h)
         Hm = np.zeros((len(e), 3, self.n_m))
         for j in range(self.n_m):
@@ -795,6 +796,13 @@ def check_effects(effects, log: Log) -> None:
             raise LogError(f"--effect {name} cannot be fitted on {log.source or 'this log'}: {why}")
 
 
+def hooked_effects(log: Log, model: Model, own=()) -> list:
+    """Instances of ``model``'s effects that act through their hooks on ``log`` (all but the profiled and noise
+    ones of this module); ``own``: user effect classes among them."""
+    entries = {n: e for n, e in model.effects.items() if n not in EFFECTS and n not in NOISE_EFFECTS}
+    return [cls(log) for cls in of_model(entries, own)]
+
+
 def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Model) -> Model:
     """``model`` with regional_motion_noise on ``regions``, every region starting from ``fitted``'s
     forward and turn noise per median step (the turn variance shared half and half by k_t and k_d)."""
@@ -952,7 +960,8 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
                              "log_likelihood": ll, "converged": converged, "effects_std": effect_std})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=base.cost + trace, stages=base.stages + stages,
                iterations=base.iterations + its, converged=converged, log_likelihood=ll,
-               notes={**base.notes, "base_log_likelihood": base.log_likelihood, "hooked_effects": effects})
+               notes={**base.notes, "base_log_likelihood": base.log_likelihood,
+                      "hooked_effects": [type(e) for e in effects]})
 
 
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,

@@ -185,20 +185,27 @@ def command_model(model: Model, ml: ContinuousMarginalLikelihood, x_med: np.ndar
                   cov: np.ndarray) -> Model:
     """The command-map model at noise levels ``x_med``, map and polynomial at their posterior mean with their
     std (the polynomial's std and covariance only where the log measures readings)."""
-    st = ml.state
-    n = len(st.params)
+    st, pb = ml.state, ml.problem
+    n, m = pb.n_params, pb.n_m          # M(0): the command map, then the hooked effects' parameters
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     sr, sb, mot = ml._split(x_med)
     kw = {}
     if model.has("reading"):
         d = ml.reading_distances()
-        kw = dict(reading_poly=st.poly + shift[n:], reading_poly_std=sd[n:], reading_poly_cov=cov[n:, n:],
+        kw = dict(reading_poly=st.poly + shift[m:], reading_poly_std=sd[m:], reading_poly_cov=cov[m:, m:],
                   distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range)
+    theta = st.theta.copy()
+    theta[pb.ls_index] += shift[n:m]
+    col = {int(c): n + j for j, c in enumerate(pb.ls_index)}
+    effects = {**model.effects, **{e.name: e.describe(theta[s]) for e, s in zip(pb.effects, pb.slices)}}
+    effects_std = {**model.fit.get("effects_std", {}),
+                   **{e.name: {p: float(sd[col[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
+                      for e, s in zip(pb.effects, pb.slices) if not e.noise_only}}
     return model.with_(command=model.command.with_params(st.params + shift[:n], sd[:n]), reading_sigma=sr,
-                       bearing_sigma=sb, motion_noise=mot, **kw,
-                       fit={**model.fit, "uncertainty": "noise levels: posterior median; command map and "
-                                                        "polynomial: Laplace marginals averaged over the noise "
-                                                        "posterior"})
+                       bearing_sigma=sb, motion_noise=mot, effects=effects, **kw,
+                       fit={**model.fit, "effects_std": effects_std,
+                            "uncertainty": "noise levels: posterior median; command map, effects and "
+                                           "polynomial: Laplace marginals averaged over the noise posterior"})
 
 
 def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (), walkers: int | None = None,

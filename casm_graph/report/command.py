@@ -7,7 +7,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-from casm_graph.fit import residuals
+from casm_graph.fit import continuous
 from casm_graph.fit.methods.base import Fit
 from casm_graph.io.log import Log
 from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
@@ -39,8 +39,10 @@ def maps_figure(log: Log, fit: Fit, reference=None):
 
 
 def residual_figure(log: Log, fit: Fit):
-    r, b = residuals.observation(fit.poses[log.obs_step], log, fit.model)
-    d = residuals.distances(fit.poses[log.obs_step], log)
+    """Reading and bearing residuals under the fitted model, its lens and hooked sensor effects included."""
+    effects = [cls(log) for cls in fit.notes.get("hooked_effects", ())]
+    res = continuous.sighting_residuals(log, fit.poses[log.obs_step], fit.model, effects)
+    r, b, d = res["reading"], res["bearing_residual"], res["distance"]
     fig, axs = subplots(1, 3, figsize=(13, 3.6))
     axs[0].plot(d, r, ".", ms=2, alpha=0.4)
     axs[0].set(xlabel="distance (m)", ylabel="reading residual", title=f"reading (sigma {fit.model.noise_text('reading', '.3g')})")
