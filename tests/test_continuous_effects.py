@@ -79,21 +79,22 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     lag = diag["candidates"][0]                              # most supported first
     assert lag["effect"] == "actuator_lag" and lag["delta_bic"] < -10
     assert {c["effect"] for c in diag["candidates"]} == {"actuator_lag", "lens_distortion", "battery_fade",
-                                                          "camera_latency", "landmark_offset", "surface_friction"}
+                                                          "camera_latency", "landmark_offset", "range_dependent_noise",
+                                                          "surface_friction"}
     assert lag["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
     assert lag["heldout_nll_drop"] is None and "continuous" in lag["heldout_skipped"]
-    assert "range_dependent_noise" in diag["not_applicable"]
+    assert "false_detections" in diag["not_applicable"]
     pred = diag["predictive"]                                # open-loop error grows with the horizon
     assert pred["horizons_s"][0] == 0 and set(pred["channels"]) == {"reading", "bearing"}
     assert all(v[-1] > v[0] for v in pred["channels"].values())
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
 
 
-def test_noise_only_effects_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
+def test_false_detections_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
     d, _ = lag_floor
     assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "false_detections",
                  "--quiet"]) == 2
-    assert "noise-only effect; on continuous-command logs only regional_motion_noise" in capsys.readouterr().err
+    assert "continuous-command logs set gross outliers aside by their gate" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
 
 

@@ -26,7 +26,7 @@ from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
 from casm_graph.fit.solve import least_squares
-from casm_graph.io.log import Log
+from casm_graph.io.log import Log, LogError
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.model import Model
 
@@ -69,12 +69,15 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
             "turn_rate": vo[:, 2], "distance": dist, "image_angle": bearing, "bearing": bearing,
             "landmark": log.obs_landmark.astype(float)}
-    for name, raw, sigma, sel in (("reading", res["reading"], problem.reading_sigma, problem.r_sel),
-                                  ("bearing", res["bearing_residual"], problem.bearing_sigma, problem.b_sel)):
+    r_sigma = np.full(len(ot), problem.reading_sigma)
+    r_sigma[problem.r_sel] *= problem.r_scale          # a noise effect's factor on each reading's sigma
+    for name, raw, sigma, sel in (("reading", res["reading"], r_sigma, problem.r_sel),
+                                  ("bearing", res["bearing_residual"], np.full(len(ot), problem.bearing_sigma),
+                                   problem.b_sel)):
         keep = sel & np.isfinite(raw)
         if not keep.any():
             continue                      # a channel this log does not measure (range-only, bearing-only)
-        out[name] = Channel(name, raw[keep] / sigma, raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
+        out[name] = Channel(name, raw[keep] / sigma[keep], raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
     return out
 
 
@@ -86,15 +89,15 @@ def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, d
     for name, cls in sorted(classes.items()):
         if name in model.effects:
             continue
-        e = cls(log)
         if name in CT.NOISE_EFFECTS:
             skipped[name] = "added on request (calibrate --effect), not diagnosed"
-        elif e.noise_only:
-            skipped[name] = "noise-only effects are not fitted on continuous-command logs yet"
-        elif e.applicable(log):
-            skipped[name] = e.applicable(log)
-        else:
-            tried.append(e)
+            continue
+        try:
+            CT.check_effects([cls], log)
+        except LogError as err:
+            skipped[name] = str(err).split(": ", 1)[-1]
+            continue
+        tried.append(cls(log))
     return tried, skipped
 
 

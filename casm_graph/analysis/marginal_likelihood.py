@@ -681,7 +681,10 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
     calibrated; hooked effects' parameters are integrated out with the command map (they are part of M(0)).
     """
 
-    integrated_out = ("poses (knots)", "command map and hooked effects", "sensor polynomial")
+    @property
+    def integrated_out(self) -> tuple[str, ...]:
+        hooked = ("effect parameters",) if len(self.problem.ls_index) else ()
+        return ("poses (knots)", "command map", *hooked, "sensor polynomial")
 
     def set_aside(self) -> int:
         return self._set_aside

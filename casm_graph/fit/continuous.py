@@ -34,7 +34,7 @@ from casm_graph.graph import augmented, chain, noise, robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.command_model import CommandModel, for_commands
-from casm_graph.models.effects import of_model
+from casm_graph.models.effects import Effect, of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
 
@@ -133,6 +133,14 @@ class Problem:
         self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
         self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
+        self.r_scale = np.ones(int(r.sum()))     # per reading: the noise effects' factor on its sigma, fixed for the
+        if self.noise_effects:                   # problem's life (distances from the knot ``poses``), as every noise level
+            if poses is None:
+                raise ValueError(f"{self.noise_effects[0][0].name}: the problem needs the knot poses for its distances")
+            self.r_dist = np.hypot(*(self.r_lm - np.asarray(poses)[self.r_knot, :2]).T)
+            th = augmented.theta_from_model(effects, model)
+            for e, sl in self.noise_effects:
+                self.r_scale = self.r_scale * e.reading_scale(th[sl], self.r_dist, {})
         self.lens_k = lens_k(model)
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
@@ -148,7 +156,8 @@ class Problem:
         self.ls_index = np.concatenate([np.arange(s.start, s.stop) for e, s in zip(effects, self.slices)
                                         if not e.noise_only] + [np.zeros(0, int)]).astype(int)
         self.motion_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "motion"]
-        self.sensor_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "sensor"]
+        self.sensor_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "sensor" and not e.noise_only]
+        self.noise_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "sensor" and e.noise_only]
         self.theta_prior = augmented.parameter_prior(effects, self.slices)
         if self.motion_effects:          # step context, one row per slot of the padded segments
             c = log.controls
@@ -231,6 +240,8 @@ class Problem:
         w = 1.0 / self.motion_sigma
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         re, rJ, be, bJ = self.sightings(st)
+        if self.noise_effects:
+            re, rJ = re / self.r_scale, [j / self.r_scale[:, None] for j in rJ]
         if robust_weights:
             w = robust.huber(re)
             re, rJ = re * w, [j * w[:, None] for j in rJ]
@@ -465,6 +476,7 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     m = np.maximum(m, MIN_MOTION_SIGMA)
     model = model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
                         bearing_sigma=model.bearing_sigma * new["bearing"])
+    model = noise_effects_step(problem, st, model)
     if not regional:
         return model
     regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
@@ -479,6 +491,23 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
             k_new[g] = RMN.estimate(problem.seg_r[sel], problem.seg_turn[sel], e2[sel, 0], e2[sel, 1], k[g])
     counts = np.bincount(problem.seg_region, minlength=regions.count)
     return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k_new, counts)})
+
+
+def noise_effects_step(problem: Problem, st: State, model: Model) -> Model:
+    """``model`` with the noise-only sensor effects' parameters re-estimated from the readings' residuals at
+    ``st`` (each effect's own ``estimate_noise``, as on action tables), sigma the model's."""
+    if not problem.noise_effects:
+        return model
+    raw = problem._sightings(st)[0] * problem.reading_sigma if not problem.sensor_effects else \
+        problem._sightings_with_effects(st)[0] * problem.reading_sigma
+    theta = augmented.theta_from_model(problem.effects, model)
+    ctx = {"weight": np.ones(len(raw)), "reading_scale": problem.r_scale, "reading_sigma": model.reading_sigma,
+           "bearing_sigma": model.bearing_sigma}
+    out = dict(model.effects)
+    for e, sl in problem.noise_effects:
+        theta[sl] = e.estimate_noise(theta[sl], raw / (model.reading_sigma * problem.r_scale), None, problem.r_dist, ctx)
+        out[e.name] = e.describe(theta[sl])
+    return model.with_(effects=out)
 
 
 def lens_k(model: Model) -> float:
@@ -517,7 +546,12 @@ def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GAT
          effects=()) -> tuple[np.ndarray, np.ndarray]:
     """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
     res = sighting_residuals(log, poses_at_obs, model, effects)
-    r = np.abs(res["reading"]) / model.reading_sigma
+    scale = np.ones(len(res["distance"]))      # the noise effects' factor on each reading's sigma
+    noisy = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.noise_only]
+    theta = augmented.theta_from_model(list(effects), model) if noisy else None
+    for e, s in noisy:
+        scale = scale * e.reading_scale(theta[s], res["distance"], {})
+    r = np.abs(res["reading"]) / (model.reading_sigma * scale)
     b = np.abs(res["bearing_residual"]) / model.bearing_sigma
     return ~(r > z), ~(b > z)
 
@@ -532,7 +566,8 @@ def with_state(model: Model, st: State, effects=()) -> Model:
     model = model.with_(command=model.command.with_params(st.params), reading_poly=st.poly.copy())
     if not effects:
         return model
-    described = {e.name: e.describe(st.theta[s]) for e, s in zip(effects, augmented.parameter_slices(list(effects)))}
+    described = {e.name: e.describe(st.theta[s]) for e, s in zip(effects, augmented.parameter_slices(list(effects)))
+                 if not e.noise_only}                  # noise effects: set by the noise step, not carried in ``st``
     return model.with_(effects={**model.effects, **described})
 
 
@@ -648,7 +683,7 @@ def problem_log_likelihood(problem: "Problem", st, model: Model) -> float:
     """log p(data, knots | model) at ``st``: the cost with its Gaussian normalisers (noise levels fixed)."""
     sel, n_motion = problem.r_sel, problem.motion_sigma.size
     log_det = (np.sum(np.log(problem.motion_sigma)) + sel.sum() * np.log(model.reading_sigma)
-               + problem.b_sel.sum() * np.log(model.bearing_sigma))
+               + np.sum(np.log(problem.r_scale)) + problem.b_sel.sum() * np.log(model.bearing_sigma))
     n = n_motion + int(sel.sum()) + int(problem.b_sel.sum())
     return float(-problem.cost(st) - log_det - 0.5 * n * np.log(2 * np.pi))
 
@@ -788,9 +823,10 @@ def check_effects(effects, log: Log) -> None:
                                f"measure (observations.csv has only {', '.join(log.channels)})")
             continue
         inst = augmented.instantiate([e], log)[0]
-        if inst.noise_only:
-            raise LogError(f"--effect {name}: a noise-only effect; on continuous-command logs only "
-                           f"{', '.join(NOISE_EFFECTS)} is available so far")
+        if inst.noise_only and (inst.channel != "sensor" or type(inst).outlier_fraction is not Effect.outlier_fraction):
+            raise LogError(f"--effect {name}: a mixture of false detections or a motion noise effect; continuous-command "
+                           f"logs set gross outliers aside by their gate, and of the motion noise effects take "
+                           f"{', '.join(NOISE_EFFECTS)}")
         why = inst.applicable(log)
         if why:
             raise LogError(f"--effect {name} cannot be fitted on {log.source or 'this log'}: {why}")
@@ -896,6 +932,9 @@ def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.n
     try:
         st, _ = least_squares(problem, state(start, model, effects), max_iterations=PROFILE_ITERATIONS)
         model = _ml_noise(problem, st, with_state(model, st, effects))
+        if problem.noise_effects:
+            model = noise_effects_step(problem, st, model)
+            model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
         problem = Problem(log, lay, model, use, st.poses, effects)
         st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
     except RuntimeError:
@@ -928,7 +967,7 @@ def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
     for k, w2 in _group_sums(problem, st).items():
         ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
         out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
-    return float(out)
+    return float(out - np.sum(np.log(problem.r_scale)))
 
 
 HOOKED_ROUNDS = 3       # rounds of the fine graph with the hooked effects' parameters free (then up to FULL_SETTLE
