@@ -225,17 +225,7 @@ def test_a_user_effect_and_catalog_effects_fit_on_a_real_robot(robot1, tmp_path)
     first 4 minutes (continuous commands): finite values with their std in model.json, a log-likelihood no lower
     than without them."""
     import casm_graph as cg
-
-    class HeadingSlip(cg.Effect):
-        name = "heading_slip"
-        channel = "motion"
-        params = ("k",)
-        start, scale = (0.0,), (0.05,)
-        explains = (("forward", "heading"),)
-        physics = "The carpet pile runs along x: forward speed scales by 1 + k cos(heading)."
-
-        def velocity(self, theta, v, ctx):
-            return v * (1.0 + theta[0] * np.cos(ctx["pose"][:, 2]))[:, None]
+    from tests.test_api import HeadingSlip          # the README's own effect
 
     whole = load(robot1)
     log = whole.window(whole.t[0], whole.t[0] + 240.0)

@@ -281,7 +281,7 @@ class Problem:
             return (pred * (1.0 + k * wrap(bearing) ** 2) if k else pred), bearing, d
 
         uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
-        ls_slices = [s for e, s in self.sensor_effects if not e.noise_only]
+        ls_slices = [s for _, s in self.sensor_effects]
         r_idx, b_idx = np.flatnonzero(self.r_sel), np.flatnonzero(self.b_sel)
         (er, Jr), (eb, Jb) = factors.effect_sighting.error(
             fn, st.poses, st.poly, st.theta, self.ls_index, ls_slices, self.lay.obs_knot, r_idx, b_idx,
@@ -352,39 +352,16 @@ class Problem:
         return g
 
     def normal_equations(self, st: State, poses_only: bool = False) -> tuple:
-        """Blocks of J^T J and J^T e: the knot chain (D, B), its coupling F to the parameters [M(0), C(0)], the
-        parameter block and the gradients, for the chain's own elimination (:func:`casm_graph.graph.chain.solve_arrow`,
-        GTSAM's solve with the parameters ordered last, without a factor per row built in Python)."""
+        """Blocks of J^T J and J^T e for the chain's own elimination (:func:`casm_graph.graph.chain.solve_arrow`,
+        GTSAM's solve with the parameters [M(0), C(0)] ordered last, without a factor per row built in Python)."""
         ae, (Ha, Hb, Hm), re, rJ, be, bJ, pe = self.rows(st)
-        K = self.lay.n_poses
-        D = np.zeros((K, 3, 3))
-        D[:-1] += np.einsum("nki,nkj->nij", Ha, Ha)
-        D[1:] += np.einsum("nki,nkj->nij", Hb, Hb)
-        B = np.einsum("nki,nkj->nij", Ha, Hb)
-        gp = np.zeros((K, 3))
-        gp[:-1] += np.einsum("nki,nk->ni", Ha, ae)
-        gp[1:] += np.einsum("nki,nk->ni", Hb, ae)
-        knot = np.concatenate([self.r_knot, self.b_knot])
-        Jp = np.concatenate([rJ[0], bJ[0]])
-        eo = np.concatenate([re, be])
-        at = sp.csr_matrix((np.ones(len(knot)), (knot, np.arange(len(knot)))), shape=(K, len(knot)))
-        D += (at @ np.einsum("ni,nj->nij", Jp, Jp).reshape(len(knot), 9)).reshape(K, 3, 3)
-        gp += at @ (Jp * eo[:, None])
-        if poses_only:
-            return D, B, np.zeros((K, 3, 0)), gp, np.zeros((0, 0)), np.zeros(0)
-        n = self.n_m + self.n_poly
         Ht = np.concatenate([Hm, np.zeros((len(ae), 3, self.n_poly))], axis=2)
         Jt = np.concatenate([np.concatenate([rJ[2], rJ[1]], axis=1),
                              np.concatenate([bJ[1], np.zeros((len(be), self.n_poly))], axis=1)])
-        F = np.zeros((K, 3, n))
-        F[:-1] += np.einsum("nki,nkj->nij", Ha, Ht)
-        F[1:] += np.einsum("nki,nkj->nij", Hb, Ht)
-        F += (at @ (Jp[:, :, None] * Jt[:, None, :]).reshape(len(knot), 3 * n)).reshape(K, 3, n)
-        At = Ht.reshape(-1, n)
         prior = np.concatenate([1 / self.p_sigma, np.full(self.n_poly, 1 / POLY_PRIOR_SIGMA)])
-        Htt = At.T @ At + Jt.T @ Jt + np.diag(prior ** 2)
-        gt = At.T @ ae.ravel() + Jt.T @ eo + prior * pe
-        return D, B, F, gp, Htt, gt
+        return chain.normal_equations(Ha, Hb, Ht, ae, np.concatenate([self.r_knot, self.b_knot]),
+                                      np.concatenate([rJ[0], bJ[0]]), Jt, np.concatenate([re, be]), prior, pe,
+                                      poses_only)
 
     def solve_damped(self, neq: tuple, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Damped Gauss-Newton step (d poses, d parameters) from :meth:`normal_equations`."""
@@ -498,8 +475,7 @@ def noise_effects_step(problem: Problem, st: State, model: Model) -> Model:
     ``st`` (each effect's own ``estimate_noise``, as on action tables), sigma the model's."""
     if not problem.noise_effects:
         return model
-    raw = problem._sightings(st)[0] * problem.reading_sigma if not problem.sensor_effects else \
-        problem._sightings_with_effects(st)[0] * problem.reading_sigma
+    raw = problem.sightings(st)[0] * problem.reading_sigma
     theta = augmented.theta_from_model(problem.effects, model)
     ctx = {"weight": np.ones(len(raw)), "reading_scale": problem.r_scale, "reading_sigma": model.reading_sigma,
            "bearing_sigma": model.bearing_sigma}

@@ -313,33 +313,11 @@ class EffectProblem:
     def normal_equations(self, st: AState, poses_only: bool = False) -> tuple:
         """Blocks of J^T J and J^T e: pose chain (D, B), coupling F, parameter block and gradients."""
         r = self.rows(st)
-        K, n = self.lay.n_poses, self.n_theta
         Ha, Hb, Ht = r.action_J
-        e = r.action_e
-        D = np.zeros((K, 3, 3))
-        D[:-1] += np.einsum("nki,nkj->nij", Ha, Ha)
-        D[1:] += np.einsum("nki,nkj->nij", Hb, Hb)
-        B = np.einsum("nki,nkj->nij", Ha, Hb)
-        gp = np.zeros((K, 3))
-        gp[:-1] += np.einsum("nki,nk->ni", Ha, e)
-        gp[1:] += np.einsum("nki,nk->ni", Hb, e)
-        knot = np.concatenate([self.r_knot, self.b_knot])
-        Jp = np.concatenate([r.reading_J[0], r.bearing_J])
-        Jt = np.concatenate([r.reading_J[1], r.bearing_Jt])
-        eo = np.concatenate([r.reading_e, r.bearing_e])
-        at = sp.csr_matrix((np.ones(len(knot)), (knot, np.arange(len(knot)))), shape=(K, len(knot)))
-        D += (at @ np.einsum("ni,nj->nij", Jp, Jp).reshape(len(knot), 9)).reshape(K, 3, 3)   # per pose: sums over
-        gp += at @ (Jp * eo[:, None])                                                        # its sightings
-        if poses_only:
-            return D, B, np.zeros((K, 3, 0)), gp, np.zeros((0, 0)), np.zeros(0)
-        F = np.zeros((K, 3, n))
-        F[:-1] += np.einsum("nki,nkj->nij", Ha, Ht)
-        F[1:] += np.einsum("nki,nkj->nij", Hb, Ht)
-        F += (at @ (Jp[:, :, None] * Jt[:, None, :]).reshape(len(knot), 3 * n)).reshape(K, 3, n)
-        At = Ht.reshape(-1, n)
-        Htt = At.T @ At + Jt.T @ Jt + np.diag(r.prior_J ** 2)
-        gt = At.T @ e.ravel() + Jt.T @ eo + r.prior_J * r.prior_e
-        return D, B, F, gp, Htt, gt
+        return chain.normal_equations(Ha, Hb, Ht, r.action_e, np.concatenate([self.r_knot, self.b_knot]),
+                                      np.concatenate([r.reading_J[0], r.bearing_J]),
+                                      np.concatenate([r.reading_J[1], r.bearing_Jt]),
+                                      np.concatenate([r.reading_e, r.bearing_e]), r.prior_J, r.prior_e, poses_only)
 
     def solve_damped(self, neq: tuple, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Damped Gauss-Newton step (dp, dtheta) from :meth:`normal_equations` (equals GTSAM's solve)."""

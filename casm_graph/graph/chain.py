@@ -82,6 +82,34 @@ def _chain_solve(D, B, R, lam):
     return Xs
 
 
+def normal_equations(Ha, Hb, Ht, ae, knot, Jp, Jt, eo, prior, pe, poses_only: bool = False) -> tuple:
+    """Blocks (D, B, F, gp, Htt, gt) of J^T J and J^T e for :func:`solve_arrow` from whitened rows: motion rows
+    ``ae`` (S, 3) with Jacobians ``Ha``, ``Hb`` on consecutive poses and ``Ht`` on the parameters, sighting rows
+    ``eo`` on pose ``knot`` with ``Jp`` and ``Jt``, and a diagonal prior ``prior`` with residual ``pe``."""
+    K = len(Ha) + 1
+    D = np.zeros((K, 3, 3))
+    D[:-1] += np.einsum("nki,nkj->nij", Ha, Ha)
+    D[1:] += np.einsum("nki,nkj->nij", Hb, Hb)
+    B = np.einsum("nki,nkj->nij", Ha, Hb)
+    gp = np.zeros((K, 3))
+    gp[:-1] += np.einsum("nki,nk->ni", Ha, ae)
+    gp[1:] += np.einsum("nki,nk->ni", Hb, ae)
+    at = sp.csr_matrix((np.ones(len(knot)), (knot, np.arange(len(knot)))), shape=(K, len(knot)))
+    D += (at @ np.einsum("ni,nj->nij", Jp, Jp).reshape(len(knot), 9)).reshape(K, 3, 3)   # per pose: sums over
+    gp += at @ (Jp * eo[:, None])                                                        # its sightings
+    if poses_only:
+        return D, B, np.zeros((K, 3, 0)), gp, np.zeros((0, 0)), np.zeros(0)
+    n = Ht.shape[2]
+    F = np.zeros((K, 3, n))
+    F[:-1] += np.einsum("nki,nkj->nij", Ha, Ht)
+    F[1:] += np.einsum("nki,nkj->nij", Hb, Ht)
+    F += (at @ (Jp[:, :, None] * Jt[:, None, :]).reshape(len(knot), 3 * n)).reshape(K, 3, n)
+    At = Ht.reshape(-1, n)
+    Htt = At.T @ At + Jt.T @ Jt + np.diag(prior ** 2)
+    gt = At.T @ ae.ravel() + Jt.T @ eo + prior * pe
+    return D, B, F, gp, Htt, gt
+
+
 def solve_arrow(D, B, F, gp, Htt, gt, lam):
     """Solve [[Hpp + lam I, F], [F^T, Htt + lam I]] [dp; dt] = -[gp; gt] with Hpp block tridiagonal.
 

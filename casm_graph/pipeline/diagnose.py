@@ -65,13 +65,13 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         model = calibration
     check_identifiable(log)
     source = log.source or "the log"
+    unknown = unresolved(model.effects, extra_effects)
+    if unknown:
+        raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
     if log.controls is not None:
         if model.command is None:
             raise LogError(f"the model has no command map (action_model.kind 'command_poly') for {source}'s "
                            f"continuous commands; calibrate this log first")
-        unknown = unresolved(model.effects, extra_effects)
-        if unknown:
-            raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
         if poses is None:
             if progress is not None:
                 progress.stage("start trajectory", None)
@@ -82,9 +82,6 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
                             action_ids=log.action_ids, velocity_std=None)
-        unknown = unresolved(model.effects, extra_effects)
-        if unknown:
-            raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
         if poses is None:
             if progress is not None:
                 progress.stage("start trajectory", None)
