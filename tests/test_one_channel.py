@@ -15,6 +15,7 @@ from casm_graph.cli import main
 from casm_graph.io import plaza
 from casm_graph.io.log import wrap
 from casm_graph.models.model import Model
+from tests.worlds.independent_world import generate
 
 PLAZA = plaza.find_plaza()
 TRUE_PLAZA_SLOPE = 1.069          # the data set's README: range = 0.03 + 1.069 d against the ground truth
@@ -106,6 +107,66 @@ def test_mixed_log_with_no_sighting_measuring_both(floors):
     pos, _ = trajectory_rms(cal, log)
     assert pos < 0.2 and cal.model.channels == ("reading", "bearing")
     assert abs(speed_gain(cal, log) - 1.0) < 0.05
+
+
+@pytest.fixture(scope="module")
+def radio_table(tmp_path_factory):
+    """The independent world's action-table robot ranging to its landmarks by radio (no bearings), 3 minutes:
+    its log, truth and calibration."""
+    d = tmp_path_factory.mktemp("radio") / "log"
+    generate(d, kind="table", minutes=3, seed=5, sensor="range")
+    log = cg.load_log(d)
+    return log, json.loads((d / "world_truth.json").read_text()), cg.calibrate(log)
+
+
+def test_range_only_action_table_learns_table_curve_and_trajectory(radio_table, tmp_path):
+    """Headings from the motion alone: every heading and body velocity may turn together, so they are compared
+    after the one rotation that best aligns the headings (the start picks it along actions.csv's directions)."""
+    log, truth, cal = radio_table
+    tr = cal.trajectory
+    pos = np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2))
+    miss = wrap(tr["theta"] - log.truth[:, 3])
+    turn = np.angle(np.mean(np.exp(1j * miss)))
+    heading = np.sqrt(np.mean(wrap(miss - turn) ** 2))
+    assert pos < 0.05 and heading < 0.15 and abs(turn) < 0.3, (pos, heading, turn)
+    v = cal.model.velocities
+    c, s = np.cos(turn), np.sin(turn)
+    aligned = np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
+    true_v = np.array([truth["realized_velocities"][str(int(a))] for a in cal.model.action_ids])
+    rms = np.sqrt(np.mean((aligned - true_v) ** 2, axis=0))
+    assert rms[0] < 0.02 and rms[1] < 0.02 and rms[2] < 0.05, rms     # m/s, m/s, rad/s (pure turns included)
+    curve = truth["sensor_curve"]
+    m = cal.model
+    assert abs((m.reading(5.0) - m.reading(1.0)) / 4.0 / curve["s"] - 1) < 0.02          # time-of-flight slope
+    assert abs(m.reading_sigma - truth["noise"]["reading_sigma"]) < 0.1 * truth["noise"]["reading_sigma"]
+    assert m.channels == ("reading",) and m.fit["heading_agreement"] > 0.9
+    assert tr["stheta"][0] < 0.01 < np.median(tr["stheta"])   # the first heading is held (a gauge), the rest not
+    cal.save(tmp_path / "run")
+    assert (tmp_path / "run" / "report.html").stat().st_size > 10_000
+
+
+def test_range_only_action_table_diagnosis_and_uncertainty(radio_table, tmp_path):
+    log, _, cal = radio_table
+    diag = cg.diagnose(log, cal)
+    assert "bearing" not in diag.residuals and diag.verdict == "none"
+    assert "lens_distortion" in diag.skipped
+    diag.save(tmp_path / "diag")
+    post = cg.uncertainty(log, cal, walkers=12, max_steps=300, seed=0)
+    assert "bearing_sigma" not in post.intervals and "reading_sigma" in post.intervals
+    lo, hi = post.intervals["reading_sigma"]["ci90"]
+    assert lo < 0.05 < hi
+
+
+def test_range_only_action_table_too_short_to_check_its_headings_warns(tmp_path, capsys):
+    """Four minutes of a robot with four pure turns: too few repeated moves to chain its headings. The log still
+    gets a model, with a warning that says why it may be wrong."""
+    d = tmp_path / "log"
+    generate(d, kind="table", minutes=4, seed=3, sensor="range")
+    code = main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 0 and "ranges alone place this robot's headings poorly" in err
+    fit = json.loads((tmp_path / "run" / "model.json").read_text())["fit"]
+    assert fit["heading_agreement"] is None and np.isfinite(fit["log_likelihood"])
 
 
 @pytest.mark.skipif(PLAZA is None, reason="no Plaza1.mat (set CASM_PLAZA or put it in shared/data/plaza1)")

@@ -40,6 +40,7 @@ from scipy.sparse.linalg import splu
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.outliers import kept
 from casm_graph.fit.solve import least_squares
+from casm_graph.graph import table as G
 from casm_graph.graph.augmented import AState, EffectProblem, instantiate, theta_from_model
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects import of_model
@@ -340,8 +341,8 @@ class NoiseParameter:
 
 def noise_parameters(problem: EffectProblem, model: Model, theta: np.ndarray) -> list[NoiseParameter]:
     """Every noise level of ``model``: sigmas, motion noise per axis, noise-only effect parameters."""
-    out = [NoiseParameter("reading_sigma", "reading", 0, float(model.reading_sigma)),
-           NoiseParameter("bearing_sigma", "bearing", 0, float(model.bearing_sigma))]
+    out = [NoiseParameter(f"{ch}_sigma", ch, 0, float(getattr(model, f"{ch}_sigma")))
+           for ch in ("reading", "bearing") if len(getattr(problem, f"{ch[0]}_knot")) and model.has(ch)]
     for c, name in enumerate(MOTION_NAMES):
         out.append(NoiseParameter(name, "motion", c, float(model.motion_noise[c])))
     for e, s in zip(problem.effects, problem.slices):
@@ -613,7 +614,8 @@ def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -
     reading sigma the sampler sees."""
     effects = instantiate(of_model(model.effects), log)
     theta = theta_from_model(effects, model)
-    problem = EffectProblem(log, model, effects, theta, obs_mask=kept(log, model, poses, effects))
+    problem = EffectProblem(log, model, effects, theta, obs_mask=kept(log, model, poses, effects),
+                            anchor=G.heading_anchor(log, poses))
     st = problem.state(poses, model, theta)
     problem.refresh_noise_state(st)
     st, _ = least_squares(problem, st, max_iterations=iterations)

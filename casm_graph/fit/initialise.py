@@ -10,6 +10,10 @@ built in three global steps before any least squares runs:
    refit the curve as a polynomial against the smoothed distances.
 2. **Which way did it face?** Within each constant-action segment the heading is theta0 + w t; a
    circular regression of (direction to landmark - measured bearing) on time gives theta0 and w.
+   With ranges only (no bearing anywhere) the heading shows only through the motion
+   (:func:`_motion_headings`): each segment's smoothed positions are fitted by an arc, which gives
+   its direction of travel and, through the curvature, its action's turn rate; the headings are
+   chained across segments by synchronising the actions' directions of travel in the body frame.
 3. **How fast?** With the headings fixed, the segment's positions are linear in its body-frame
    velocity; per-action averages of the per-segment fits give the starting table, and dead
    reckoning each segment from its own fit gives the starting trajectory.
@@ -21,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from casm_graph.fit.locate import grid_cell, locate
+from casm_graph.fit.windows import inverse_curve
+from casm_graph.graph import robust
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.model import Model
 
@@ -32,6 +38,8 @@ class Start:
     model: Model
     hypothesis: tuple[float, float]   # (p, k) of the winning sensor hypothesis
     log_evidence: float
+    heading_agreement: float = float("nan")   # ranges only: how well the chained headings agree (1: fully;
+                                              # NaN: bearings gave them, or too few repeated moves to tell)
 
 
 def _headings(seg_of_knot, seg_act, t_knot, obs_knot, dirs, bearing, w_max=3.0):
@@ -67,6 +75,202 @@ def _headings(seg_of_knot, seg_act, t_knot, obs_knot, dirs, bearing, w_max=3.0):
     return out
 
 
+TURN_RATES = np.linspace(-4.0, 4.0, 401)    # rad/s: the turn rates a ranges-only start tries per action
+MIN_REDUNDANCY = 10                          # links beyond the unknowns they determine, to judge how well they agree
+MOVING = 25.0                                # chi-square gain of an arc over standing still that counts as moving
+
+
+def _arc_basis(tt: np.ndarray, ws: np.ndarray) -> np.ndarray:
+    """(len(ws), len(tt)) complex g_w(t) = (exp(i w t) - 1) / (i w): an arc's displacement per unit velocity."""
+    w = np.where(ws == 0, 1.0, ws)[:, None]
+    return np.where(ws[:, None] == 0, tt[None, :], (np.exp(1j * w * tt[None, :]) - 1) / (1j * w))
+
+
+def _range_arcs(lm: np.ndarray, dist: np.ndarray, weight: np.ndarray, tt: np.ndarray, ws: np.ndarray,
+                z: np.ndarray, tz: np.ndarray, iterations: int = 8):
+    """One segment's arc p(t) = z0 + u g_w(t) fitted to its ranges for every turn rate in ``ws`` (Gauss-Newton,
+    Huber-weighted, started from the arc through the smoothed positions ``z`` at times ``tz``).
+
+    ``dist`` are the ranges as distances, ``weight`` their inverse variances. Returns z0, u and the weighted
+    residual sum of squares per turn rate, and that sum for a robot standing still at its best point.
+    """
+    g = _arc_basis(tz, ws)
+    gc, zc = g - g.mean(axis=1, keepdims=True), z - z.mean()
+    u = np.sum(np.conj(gc) * zc[None, :], axis=1) / np.maximum(np.sum(np.abs(gc) ** 2, axis=1), 1e-12)
+    z0 = z.mean() - u * g.mean(axis=1)
+    p = np.column_stack([z0.real, z0.imag, u.real, u.imag])
+    g_obs = _arc_basis(tt, ws)
+    gr, gi = g_obs.real, g_obs.imag
+    sw = np.sqrt(weight)[None, :]
+    for it in range(iterations + 1):
+        px = p[:, :1] + p[:, 2:3] * gr - p[:, 3:4] * gi
+        py = p[:, 1:2] + p[:, 2:3] * gi + p[:, 3:4] * gr
+        dx, dy = px - lm[None, :, 0], py - lm[None, :, 1]
+        d = np.maximum(np.hypot(dx, dy), 1e-9)
+        r = (d - dist[None, :]) * sw
+        h = robust.huber(r)
+        if it == iterations:
+            break
+        ex, ey = dx / d * sw * h, dy / d * sw * h
+        J = np.stack([ex, ey, ex * gr + ey * gi, -ex * gi + ey * gr], axis=-1)
+        H = np.einsum("wni,wnj->wij", J, J) + 1e-9 * np.eye(4)
+        p = p - np.linalg.solve(H, np.einsum("wni,wn->wi", J, r * h)[..., None])[..., 0]
+    rss = np.sum(robust.huber_loss(r), axis=1) * 2
+    still = int(np.argmin(np.abs(ws)))
+    c = np.array([p[still, 0], p[still, 1]])
+    for _ in range(iterations):
+        dx, dy = c[0] - lm[:, 0], c[1] - lm[:, 1]
+        d = np.maximum(np.hypot(dx, dy), 1e-9)
+        r0 = (d - dist) * sw[0]
+        h0 = robust.huber(r0)
+        J0 = np.column_stack([dx / d, dy / d]) * (sw[0] * h0)[:, None]
+        c = c - np.linalg.solve(J0.T @ J0 + 1e-9 * np.eye(2), J0.T @ (r0 * h0))
+    d = np.hypot(c[0] - lm[:, 0], c[1] - lm[:, 1])
+    rss0 = float(np.sum(robust.huber_loss((d - dist) * sw[0])) * 2)
+    return p[:, 0] + 1j * p[:, 1], p[:, 2] + 1j * p[:, 3], rss, rss0
+
+
+def _motion_headings(seg_act, seg_t, t_ref, seg_u, seg_rss, rss0, model: Model, attempted=None):
+    """Headings and turn rates of every constant-action segment from its arcs (ranges only).
+
+    ``seg_u`` (segments, turn rates) is each segment's complex velocity at its reference time ``t_ref``
+    (NaN: too few ranges to fit), ``seg_rss`` its weighted misfit and ``rss0`` the misfit standing still.
+    An action's turn rate is where its segments' summed misfit is least (curvature) when it moves; one
+    that barely moves gets its turn rate from how the direction of travel turns across it. The heading
+    is arg(u) - phi_a, phi_a the action's direction of travel in the body frame; phi_a and the turn rates
+    are chosen to make consecutive moving segments agree (angular synchronisation by the leading
+    eigenvector, then coordinate ascent). One rotation is free (every heading + d, every body velocity by
+    -d: ranges and motion unchanged): it is fixed so the actions travel along their attempted directions
+    (actions.csv) when known, else so the most-travelled action moves straight ahead.
+
+    Returns (theta at t_ref, w) per segment, the chosen turn-rate index per action, and how well the
+    moving segments' headings agree once chained (the mean resultant length of the links' misses, 0 to 1;
+    NaN when too few links repeat to tell).
+    """
+    n_seg, A = len(seg_act), len(model.action_ids)
+    ws = TURN_RATES
+    fitted = np.isfinite(t_ref)
+    rss = np.zeros((A, len(ws)))
+    np.add.at(rss, seg_act[fitted], seg_rss[fitted])
+    best = np.argmin(rss, axis=1)
+    dur = np.diff(seg_t)
+    gain = np.where(fitted, rss0 - seg_rss[np.arange(n_seg), best[seg_act]], 0.0)
+    mover_action = np.zeros(A, bool)
+    for a in range(A):
+        sel = fitted & (seg_act == a)
+        mover_action[a] = sel.any() and np.median(gain[sel]) > MOVING
+    wi = np.where(mover_action, best, int(np.argmin(np.abs(ws))))
+    movers = np.flatnonzero(fitted & mover_action[seg_act] & (gain > MOVING))
+    if len(movers) < 2:
+        return np.column_stack([np.zeros(n_seg), ws[wi][seg_act]]), wi, 0.0
+
+    # links between consecutive moving segments: arg u_s' - arg u_s = phi_a' - phi_a + sum of w_a x time in a
+    L = len(movers) - 1
+    dur_in = np.zeros((L, A))
+    for i in range(L):
+        s, s2 = movers[i], movers[i + 1]
+        dur_in[i, seg_act[s]] += seg_t[s + 1] - t_ref[s]
+        np.add.at(dur_in[i], seg_act[s + 1:s2], dur[s + 1:s2])
+        dur_in[i, seg_act[s2]] += t_ref[s2] - seg_t[s2]
+    a0, a1 = seg_act[movers[:-1]], seg_act[movers[1:]]
+    phi = np.zeros(A)
+    ang = np.angle(seg_u[movers])                                   # (M, len(ws)) direction of travel
+    rows = np.arange(len(movers))
+    d = ang[rows, wi[seg_act[movers]]]
+    turning = np.flatnonzero((dur_in.sum(axis=0) > 0) & ~mover_action)    # turn rates the links must find
+    through = dur_in[:, turning] > 0
+    # first the directions of travel from links through moving actions only, then each turning action's rate
+    # from the links through it alone, then everything in turn
+    plain = ~through.any(axis=1)
+    M = np.zeros((A, A), complex)
+    np.add.at(M, (a1[plain], a0[plain]), np.exp(1j * (np.diff(d) - dur_in @ ws[wi])[plain]))
+    phi = np.angle(np.linalg.eigh(M + M.conj().T)[1][:, -1])
+    for k, a in enumerate(turning):
+        alone = through[:, k] & (through.sum(axis=1) == 1)
+        if alone.sum() >= 2:
+            miss = (np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ ws[wi])[alone]
+            score = np.sum(np.cos(miss[None, :] - (ws - ws[wi[a]])[:, None] * dur_in[None, alone, a]), axis=1)
+            wi[a] = int(np.argmax(score))
+    for sweep in range(8):
+        delta = np.diff(d) - dur_in @ ws[wi]                       # phi_a1 - phi_a0 wanted
+        for _ in range(5):
+            z = np.zeros(A, complex)
+            np.add.at(z, a1, np.exp(1j * (phi[a0] + delta)))
+            np.add.at(z, a0, np.exp(1j * (phi[a1] - delta)))
+            phi = np.where(np.abs(z) > 0, np.angle(z), phi)
+        for a in turning:
+            miss = np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ ws[wi]
+            score = np.sum(np.cos(miss[None, :] - (ws - ws[wi[a]])[:, None] * dur_in[None, :, a]), axis=1)
+            wi[a] = int(np.argmax(score))
+    w = ws[wi]
+    d = ang[rows, wi[seg_act[movers]]]
+    agreement = float(np.abs(np.mean(np.exp(1j * (np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ w)))))
+    if L - (len(np.unique(np.concatenate([a0, a1]))) - 1) - len(turning) < MIN_REDUNDANCY:
+        agreement = float("nan")                     # as many unknowns as links: any chain agrees
+
+    # the free rotation: attempted directions of travel when known, else the most-travelled action straight ahead
+    weight = np.bincount(seg_act[movers], weights=np.abs(seg_u[movers, wi[seg_act[movers]]]) * dur[movers],
+                         minlength=A)
+    shift = -phi[int(np.argmax(weight))]
+    if attempted is not None:
+        ok = np.isfinite(attempted[:, 0]) & (np.hypot(attempted[:, 0], attempted[:, 1]) > 0) & (weight > 0)
+        if ok.any():
+            shift = np.angle(np.sum(weight[ok] * np.exp(1j * (np.arctan2(attempted[ok, 1], attempted[ok, 0])
+                                                             - phi[ok]))))
+    phi = phi + shift
+
+    # headings: each segment carries the offset of the nearest moving segment along the dead-reckoned heading
+    start_heading = np.concatenate([[0.0], np.cumsum(w[seg_act] * dur)])[:-1]
+    t_at = np.where(fitted, t_ref, seg_t[:-1])
+    dead = start_heading + w[seg_act] * (t_at - seg_t[:-1])          # dead-reckoned heading at each t_at
+    offset = wrap(d - phi[seg_act[movers]] - dead[movers])
+    mid = 0.5 * (seg_t[:-1] + seg_t[1:])
+    i = np.searchsorted(mid[movers], mid)
+    after, before = np.clip(i, 0, len(movers) - 1), np.clip(i - 1, 0, len(movers) - 1)
+    pick = np.where(np.abs(mid[movers[before]] - mid) < np.abs(mid[movers[after]] - mid), before, after)
+    return np.column_stack([wrap(dead + offset[pick]), w[seg_act]]), wi, agreement
+
+
+def _range_start(log: Log, model: Model, seg_start, seg_of_knot, seg_act, t_knot, mean, poly, res):
+    """Headings and turn rates per segment (as :func:`_headings` gives them from bearings) from ranges alone, and
+    the knots' positions replaced, segment by segment, by the arc its ranges chose (the grid smoother's
+    positions wander by tens of centimetres; an arc of constant velocity averages a segment's ranges)."""
+    T, n_seg = log.steps, len(seg_start)
+    t_pose = log.pose_times
+    seg_t = np.append(t_pose[seg_start], t_pose[T])
+    d_max = 1.5 * float(np.max(np.hypot(*(log.landmark_xy[:, None] - log.landmark_xy[None]).transpose(2, 0, 1))))
+    lm = log.landmark_xy[log.landmark_index]
+    by_step = np.argsort(log.obs_step, kind="stable")
+    seg_of_obs = np.clip(np.searchsorted(seg_start, log.obs_step[by_step], side="right") - 1, 0, n_seg - 1)
+    knot_cut = np.searchsorted(seg_of_knot, np.arange(n_seg + 1))
+    obs_cut = np.searchsorted(seg_of_obs, np.arange(n_seg + 1))
+    attempted = (np.array([log.attempted.get(int(a), np.full(3, np.nan)) for a in model.action_ids])
+                 if log.attempted else None)
+    dist = inverse_curve(poly, 0.05, max(d_max, 1.0))(log.obs_reading)
+    slope = np.abs(np.polynomial.polynomial.polyval(dist, np.polynomial.polynomial.polyder(poly)))
+    weight = (slope / max(1.4826 * float(np.median(np.abs(res))), 1e-9)) ** 2   # inverse variance as a distance
+    t_ref = np.full(n_seg, np.nan)
+    nw = len(TURN_RATES)
+    seg_z0, seg_u = np.full((n_seg, nw), np.nan, complex), np.full((n_seg, nw), np.nan, complex)
+    seg_rss, rss0 = np.zeros((n_seg, nw)), np.zeros(n_seg)
+    for s in range(n_seg):
+        kn, ob = np.arange(knot_cut[s], knot_cut[s + 1]), by_step[obs_cut[s]:obs_cut[s + 1]]
+        if len(kn) < 3 or len(ob) < 6:
+            continue
+        t_ref[s] = t_knot[kn[0]]
+        seg_z0[s], seg_u[s], seg_rss[s], rss0[s] = _range_arcs(
+            lm[ob], dist[ob], weight[ob], log.obs_t[ob] - t_ref[s], TURN_RATES,
+            mean[kn, 0] + 1j * mean[kn, 1], t_knot[kn] - t_ref[s])
+    head, wi, agreement = _motion_headings(seg_act, seg_t, t_ref, seg_u, seg_rss, rss0, model, attempted)
+    mean = mean.copy()
+    for s in np.flatnonzero(np.isfinite(t_ref)):
+        kn = np.arange(knot_cut[s], knot_cut[s + 1])
+        j = wi[seg_act[s]]
+        z = seg_z0[s, j] + seg_u[s, j] * _arc_basis(t_knot[kn] - t_ref[s], TURN_RATES[j:j + 1])[0]
+        mean[kn] = np.column_stack([z.real, z.imag])
+    return head, mean, agreement
+
+
 def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = None) -> Start:
     """Global start for ``calibrate``: trajectory, velocity table and sensor polynomial (``cell``: the grid
     smoother's, by default :func:`casm_graph.fit.locate.grid_cell`)."""
@@ -93,7 +297,11 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
     has_b = ~np.isnan(log.obs_bearing)
     dirs = np.arctan2(lm[:, 1] - mean[obs_knot, 1], lm[:, 0] - mean[obs_knot, 0])
     seg_act = np.searchsorted(model.action_ids, act[seg_start])
-    head = _headings(seg_of_knot, seg_act, t_knot, obs_knot[has_b], dirs[has_b], log.obs_bearing[has_b])
+    agreement = float("nan")
+    if has_b.any():
+        head = _headings(seg_of_knot, seg_act, t_knot, obs_knot[has_b], dirs[has_b], log.obs_bearing[has_b])
+    else:
+        head, mean, agreement = _range_start(log, model, seg_start, seg_of_knot, seg_act, t_knot, mean, poly, res)
 
     # 3. body-frame velocity per segment, then per action
     seg_v = np.full((n_seg, 3), np.nan)
@@ -142,4 +350,4 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
 
     out = model.with_(velocities=vel, reading_poly=poly,
                       reading_sigma=float(max(1.4826 * np.median(np.abs(res)), 1e-6)))
-    return Start(poses=poses, model=out, hypothesis=(p, k), log_evidence=float(ev))
+    return Start(poses=poses, model=out, hypothesis=(p, k), log_evidence=float(ev), heading_agreement=agreement)

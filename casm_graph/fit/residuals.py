@@ -120,5 +120,7 @@ def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
     for name, raw, sigma in (("reading", terms["reading"], problem.reading_sigma * terms["scale"]),
                              ("bearing", terms["bearing"], np.full(len(ot), problem.bearing_sigma))):
         ok = np.isfinite(raw) & problem.obs_mask & (terms["weight"] > 0.5)   # a mixture's outliers are explained
+        if not ok.any():
+            continue                      # a channel the log does not measure (ranges only)
         out[name] = Channel(name, (raw / sigma)[ok], raw[ok], ot[ok], {k: c[ok] for k, c in scov.items()})
     return out

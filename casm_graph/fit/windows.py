@@ -85,7 +85,7 @@ def dead_reckon_steps(velocity: np.ndarray, dt: np.ndarray, start: np.ndarray) -
     return poses
 
 
-def _inverse(poly: np.ndarray, lo: float, hi: float):
+def inverse_curve(poly: np.ndarray, lo: float, hi: float):
     """Distance as a function of the reading, by interpolation on the monotone part of ``poly``."""
     d = np.linspace(lo, hi, 400)
     r = np.polynomial.polynomial.polyval(d, poly)
@@ -277,7 +277,7 @@ def window_start(log: Log, velocity: np.ndarray, n_poly: int, speed: float,
 
     def place(poly):
         fits = {}
-        dist = _inverse(poly, 0.05, d_max)(log.obs_reading[ob]) if mode != "bearing" else None
+        dist = inverse_curve(poly, 0.05, d_max)(log.obs_reading[ob]) if mode != "bearing" else None
         starts, total = {}, 0.0
         for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
             if len(sel) < 3:

@@ -11,7 +11,7 @@ differentiated through the table row alone, not through other motion effects.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -55,6 +55,7 @@ class ARows:
     bearing_Jt: np.ndarray           # (n, n_theta)
     prior_e: np.ndarray
     prior_J: np.ndarray              # (n_theta,) diagonal
+    anchor_e: np.ndarray = field(default_factory=lambda: np.zeros(0))   # the first heading's hold (graph.Problem's)
 
 
 def instantiate(names_or_effects, log: Log) -> list[Effect]:
@@ -140,8 +141,9 @@ class EffectProblem:
     """One log, a model with noise levels held fixed, and effects; evaluated and linearised in numpy."""
 
     def __init__(self, log: Log, model: Model, effects: list[Effect], theta: np.ndarray | None = None,
-                 obs_mask: np.ndarray | None = None):
+                 obs_mask: np.ndarray | None = None, anchor: float | None = None):
         self.log, self.model, self.effects = log, model, effects
+        self.anchor = anchor                     # the first heading held (ranges only: graph.heading_anchor)
         self.lay = G.layout(log, model, stride=1)
         lay = self.lay
         self.slices = parameter_slices(effects)
@@ -272,12 +274,23 @@ class EffectProblem:
         pj = np.concatenate([np.full(3 * self.A, 1 / G.VELOCITY_PRIOR_SIGMA),
                              np.full(self.D, 1 / G.POLY_PRIOR_SIGMA), 1 / self.prior_sigma])
         pe = (self.pack(st) - np.concatenate([np.zeros(3 * self.A + self.D), self.prior_mean])) * pj
-        return ARows(ae, [Ha, Hb, Ht], re, rJ, be, bJ, bJt, pe, pj)
+        he = np.zeros(0) if self.anchor is None else np.array([wrap(P[0, 2] - self.anchor) / G.ANCHOR_SIGMA])
+        return ARows(ae, [Ha, Hb, Ht], re, rJ, be, bJ, bJt, pe, pj, he)
+
+    def _sightings(self, r: ARows):
+        """Knot, pose and parameter Jacobians and residuals of the sighting rows, the heading anchor last."""
+        n_h = len(r.anchor_e)
+        hJ = np.zeros((n_h, 3))
+        hJ[:, 2] = 1.0 / G.ANCHOR_SIGMA
+        return (np.concatenate([self.r_knot, self.b_knot, np.zeros(n_h, int)]),
+                np.concatenate([r.reading_J[0], r.bearing_J, hJ]),
+                np.concatenate([r.reading_J[1], r.bearing_Jt, np.zeros((n_h, self.n_theta))]),
+                np.concatenate([r.reading_e, r.bearing_e, r.anchor_e]))
 
     def cost(self, st: AState) -> float:
         r = self.rows(st, jacobians=False)
         return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.reading_e ** 2) + np.sum(r.bearing_e ** 2)
-                           + np.sum(r.prior_e ** 2))
+                           + np.sum(r.prior_e ** 2) + np.sum(r.anchor_e ** 2))
 
     # ----------------------------------------------------------- linear algebra
     def linearize(self, st: AState, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
@@ -291,10 +304,7 @@ class EffectProblem:
                 g.add(X(i), Ha[i], X(i + 1), Hb[i], -r.action_e[i], unit3)
             else:
                 g.add(X(i), Ha[i], X(i + 1), Hb[i], THETA, Ht[i], -r.action_e[i], unit3)
-        knot = np.concatenate([self.r_knot, self.b_knot])
-        Jp = np.concatenate([r.reading_J[0], r.bearing_J])
-        Jt = np.concatenate([r.reading_J[1], r.bearing_Jt])
-        e = np.concatenate([r.reading_e, r.bearing_e])
+        knot, Jp, Jt, e = self._sightings(r)
         order = np.argsort(knot, kind="stable")
         knot, Jp, Jt, e = knot[order], Jp[order], Jt[order], e[order]
         cuts = np.flatnonzero(np.diff(knot)) + 1
@@ -314,10 +324,7 @@ class EffectProblem:
         """Blocks of J^T J and J^T e: pose chain (D, B), coupling F, parameter block and gradients."""
         r = self.rows(st)
         Ha, Hb, Ht = r.action_J
-        return chain.normal_equations(Ha, Hb, Ht, r.action_e, np.concatenate([self.r_knot, self.b_knot]),
-                                      np.concatenate([r.reading_J[0], r.bearing_J]),
-                                      np.concatenate([r.reading_J[1], r.bearing_Jt]),
-                                      np.concatenate([r.reading_e, r.bearing_e]), r.prior_J, r.prior_e, poses_only)
+        return chain.normal_equations(Ha, Hb, Ht, r.action_e, *self._sightings(r), r.prior_J, r.prior_e, poses_only)
 
     def solve_damped(self, neq: tuple, lam: float) -> tuple[np.ndarray, np.ndarray]:
         """Damped Gauss-Newton step (dp, dtheta) from :meth:`normal_equations` (equals GTSAM's solve)."""
@@ -368,11 +375,12 @@ class EffectProblem:
         block(ro + np.arange(n_r), r.reading_J[1][:, None, :], np.full(n_r, 3 * K))
         block(ro + n_r + np.arange(n_b), r.bearing_J[:, None, :], 3 * self.b_knot)
         block(ro + n_r + np.arange(n_b), r.bearing_Jt[:, None, :], np.full(n_b, 3 * K))
-        po = ro + n_r + n_b
+        po, n_h = ro + n_r + n_b, len(r.anchor_e)
         blocks.append((po + np.arange(n_t), 3 * K + np.arange(n_t), r.prior_J))
+        blocks.append((po + n_t + np.arange(n_h), np.full(n_h, 2), np.full(n_h, 1.0 / G.ANCHOR_SIGMA)))
         rows, cols, vals = (np.concatenate(x) for x in zip(*blocks))
-        A = sp.csr_matrix((vals, (rows, cols)), shape=(po + n_t, 3 * K + n_t))
-        e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e])
+        A = sp.csr_matrix((vals, (rows, cols)), shape=(po + n_t + n_h, 3 * K + n_t))
+        e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e, r.anchor_e])
         groups = {"forward": np.arange(0, ro, 3), "lateral": np.arange(1, ro, 3),
                   "turn": np.arange(2, ro, 3), "reading": ro + np.arange(n_r),
                   "bearing": ro + n_r + np.arange(n_b)}

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import solve_triangular
 
-from casm_graph.graph.table import Problem, State
+from casm_graph.graph.table import ANCHOR_SIGMA, Problem, State
 
 PIVOT_TOL = 1e-12                   # a pivot below this share of its variable's own information counts as singular
 CHUNK_DOUBLES = 4_000_000           # right-hand sides of the chain solves go through in blocks of about this size
@@ -33,6 +33,8 @@ def information_blocks(problem: Problem, st: State) -> tuple[np.ndarray, np.ndar
     B = np.einsum("nki,nkj->nij", Ha, Hb)
     np.add.at(D, problem.r_knot, np.einsum("ni,nj->nij", r.reading_J[0], r.reading_J[0]))
     np.add.at(D, problem.b_knot, np.einsum("ni,nj->nij", r.bearing_J, r.bearing_J))
+    if len(getattr(r, "anchor_e", ())):
+        D[0, 2, 2] += 1.0 / ANCHOR_SIGMA ** 2
     return D, B
 
 

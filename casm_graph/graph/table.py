@@ -7,7 +7,7 @@ and attaches each observation to its nearest knot.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -19,6 +19,7 @@ from casm_graph.graph import robust
 from casm_graph.io.log import Log, nearest_index, wrap
 from casm_graph.models.model import Model
 
+ANCHOR_SIGMA = 1e-3             # rad: the first heading's hold on a log without bearings (a gauge, not information)
 VELOCITY_PRIOR_SIGMA = 1.0       # m/s, rad/s: keeps never-run actions posed and a wrong basin from running off (BENCHMARKS.md)
 POLY_PRIOR_SIGMA = 1e4
 
@@ -108,6 +109,7 @@ class Rows:
     bearing_J: np.ndarray    # (Nb, 3)
     prior_e: np.ndarray      # (3A + D + 1,) velocity and polynomial priors
     sighting_loss: float = 0.0   # sum of the sightings' Huber losses (times their inlier weights): their part of the cost
+    anchor_e: np.ndarray = field(default_factory=lambda: np.zeros(0))   # (0,) or (1,) the first heading's hold
 
 
 class Problem:
@@ -116,11 +118,15 @@ class Problem:
     Holds the fixed data (layout, measurements, sigmas, and the sightings' inlier ``weight`` of a
     false-detection mixture when one is fitted); the variables travel as a :class:`State`. Sightings
     count through Huber's loss (:mod:`casm_graph.graph.robust`); ``huber=False`` makes them Gaussian,
-    as the marginal likelihood of the uncertainty step models them.
+    as the marginal likelihood of the uncertainty step models them. ``anchor`` holds the first pose's heading
+    there (``ANCHOR_SIGMA``): without bearings every heading and body velocity may turn together, ranges and
+    motion unchanged, and the anchor fixes that rotation where the start put it.
     """
 
-    def __init__(self, log: Log, lay: Layout, model: Model, weight: np.ndarray | None = None, huber: bool = True):
+    def __init__(self, log: Log, lay: Layout, model: Model, weight: np.ndarray | None = None, huber: bool = True,
+                 anchor: float | None = None):
         self.log, self.lay = log, lay
+        self.anchor = anchor
         self.motion_sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(lay.seg_steps)[:, None]
         lm = log.landmark_xy[log.landmark_index]
         r = ~np.isnan(log.obs_reading)
@@ -151,12 +157,13 @@ class Problem:
         w = robust.huber(be, self.k) * self.b_w
         be, bJ = be * w, bJ * w[:, None]
         pe = np.concatenate([st.velocities.ravel() / VELOCITY_PRIOR_SIGMA, st.poly / POLY_PRIOR_SIGMA])
-        return Rows(ae, aJ, re, rJ, be, bJ, pe, loss)
+        he = np.zeros(0) if self.anchor is None else np.array([wrap(P[0, 2] - self.anchor) / ANCHOR_SIGMA])
+        return Rows(ae, aJ, re, rJ, be, bJ, pe, loss, he)
 
     def cost(self, st: State) -> float:
         """GTSAM's error: half the sum of squared whitened residuals, sightings through Huber's loss."""
         r = self.rows(st, jacobians=False)
-        return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.prior_e ** 2)) + r.sighting_loss
+        return 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.prior_e ** 2) + np.sum(r.anchor_e ** 2)) + r.sighting_loss
 
     def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
         """Gauss-Newton system at ``st``: one factor per action segment and per knot with sightings.
@@ -179,6 +186,8 @@ class Problem:
         e = np.concatenate([r.reading_e, r.bearing_e])
         order = np.argsort(knot, kind="stable")
         add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only)
+        if len(r.anchor_e):
+            g.add(X(0), np.array([[0.0, 0.0, 1.0 / ANCHOR_SIGMA]]), -r.anchor_e, gtsam.noiseModel.Unit.Create(1))
         if poses_only:
             return g
         eye3 = np.eye(3) / VELOCITY_PRIOR_SIGMA
@@ -243,18 +252,24 @@ class Problem:
         block(n_act + np.arange(n_r), r.reading_J[0][:, None, :], 3 * self.r_knot)
         block(n_act + np.arange(n_r), r.reading_J[1][:, None, :], np.full(n_r, 3 * K + 3 * A))
         block(n_act + n_r + np.arange(n_b), r.bearing_J[:, None, :], 3 * self.b_knot)
-        n_p = 3 * A + D
+        n_p, n_h = 3 * A + D, len(r.anchor_e)
         prior = np.concatenate([np.full(3 * A, 1 / VELOCITY_PRIOR_SIGMA), np.full(D, 1 / POLY_PRIOR_SIGMA)])
-        rows.append(n_act + n_r + n_b + np.arange(n_p))
-        cols.append(3 * K + np.arange(n_p))
-        vals.append(prior)
-        shape = (n_act + n_r + n_b + n_p, 3 * K + n_p)
+        rows.append(n_act + n_r + n_b + np.arange(n_p + n_h))
+        cols.append(np.concatenate([3 * K + np.arange(n_p), np.full(n_h, 2)]))
+        vals.append(np.concatenate([prior, np.full(n_h, 1 / ANCHOR_SIGMA)]))
+        shape = (n_act + n_r + n_b + n_p + n_h, 3 * K + n_p)
         A_ = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape)
-        e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e])
+        e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e, r.anchor_e])
         groups = {"forward": np.arange(0, n_act, 3), "lateral": np.arange(1, n_act, 3),
                   "turn": np.arange(2, n_act, 3), "reading": n_act + np.arange(n_r),
                   "bearing": n_act + n_r + np.arange(n_b)}
         return A_, e, groups
+
+
+def heading_anchor(log: Log, poses: np.ndarray) -> float | None:
+    """The first heading a graph of ``log`` holds (``poses`` its start): on a log without bearings only, where
+    turning every heading and body velocity together changes nothing the log measures."""
+    return None if np.any(~np.isnan(log.obs_bearing)) else float(poses[0, 2])
 
 
 def state(poses: np.ndarray, model: Model) -> State:

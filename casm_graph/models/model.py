@@ -77,6 +77,30 @@ class Model:
         """(n, 3) velocity of each action id in ``action``."""
         return self.velocities[np.searchsorted(self.action_ids, action)]
 
+    def step_velocities(self, log) -> np.ndarray:
+        """(T, 3) body-frame velocity of every command step of ``log``: the table's row for its action, or the
+        command map at its ``v, w`` (through the map's lag)."""
+        if self.command is None:
+            return self.velocity_of(log.action)
+        return self.command.velocities(log.controls, log.dt)
+
+    def fitted_to_steps(self, log, moved: np.ndarray) -> "Model":
+        """The action model that best explains ``moved`` (T, 3), each step's body-frame displacement, by least
+        squares (an EM M-step): each action's mean velocity, or the command map's regression on its basis (no
+        sideways motion in a command map); actions never run keep their velocity."""
+        dt = log.dt[:, None]
+        if self.command is None:
+            act = np.searchsorted(self.action_ids, log.action)
+            total, time = np.zeros_like(self.velocities), np.zeros(len(self.action_ids))
+            np.add.at(total, act, moved)
+            np.add.at(time, act, log.dt)
+            return self.with_(velocities=np.where(time[:, None] > 0, total / np.maximum(time, 1e-12)[:, None],
+                                                  self.velocities))
+        bv, bw = self.command.basis(log.controls, log.dt)
+        a = np.linalg.lstsq(bv * dt, moved[:, 0], rcond=None)[0]
+        b = np.linalg.lstsq(bw * dt, moved[:, 2], rcond=None)[0]
+        return self.with_(command=self.command.with_params(np.concatenate([a, b])))
+
     def with_(self, **kw) -> "Model":
         return replace(self, **kw)
 

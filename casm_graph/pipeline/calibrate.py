@@ -28,6 +28,7 @@ from casm_graph.report import command as command_report
 from casm_graph.report import pages as report
 
 SCASM_METHODS = scasm_run.METHODS             # 1-D logs: their own model kinds and report
+CONTINUOUS_METHODS = ("graph", "graph-em", "ekfs-em", "ekfs-em-learned")   # the methods with a command-map action model
 
 
 def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress | None = None) -> Fit:
@@ -122,13 +123,17 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         def write_report(path: Path, cal: Calibration) -> None:
             report.calibration(path, log, fit, fit.pose_std, truth, cal)
     else:                                   # continuous commands: the command-model graph
-        if options.method != "graph":
+        if options.method not in CONTINUOUS_METHODS:
             raise LogError(f"--method {options.method}: continuous commands (commands.csv 'v,w') are calibrated "
-                           f"by the graph method only")
+                           f"by {', '.join(CONTINUOUS_METHODS)}")
         continuous.check_effects(options.effects, log)
+        if classes and options.method != "graph":
+            raise LogError(f"--method {options.method}: effects on continuous commands are fitted by the graph method")
         grid = parse_regions(options.regions, log)
         start = continuous.start_model(log, options.sensor_degree)
-        if classes:
+        if options.method != "graph":
+            fit = METHODS[options.method](log, start, seed=options.seed, progress=progress)
+        elif classes:
             fit = continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
                                               progress=progress, regions=grid)
         else:

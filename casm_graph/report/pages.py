@@ -139,11 +139,16 @@ def residual_figure(log: Log, fit: Fit):
     ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.reading_sigma:.3g})")
     ax = axs[1, 1]
     bb = b[~np.isnan(b)]
-    ax.hist(bb, bins=60, density=True, alpha=0.6)
-    x = np.linspace(-np.pi, np.pi, 200)
-    s = m.bearing_sigma
-    ax.plot(x, np.exp(-0.5 * (x / s) ** 2) / (s * np.sqrt(2 * np.pi)), "C3")
-    ax.set(xlabel="bearing residual (rad)", title=f"bearing residual (sigma {s:.3g})")
+    if len(bb) and m.has("bearing"):
+        ax.hist(bb, bins=60, density=True, alpha=0.6)
+        x = np.linspace(-np.pi, np.pi, 200)
+        s = m.bearing_sigma
+        ax.plot(x, np.exp(-0.5 * (x / s) ** 2) / (s * np.sqrt(2 * np.pi)), "C3")
+        ax.set(xlabel="bearing residual (rad)", title=f"bearing residual (sigma {s:.3g})")
+    else:
+        ax.text(0.5, 0.5, "no bearings in this log (a range-only sensor)", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_axis_off()
     fig.tight_layout()
     return fig
 
@@ -312,6 +317,8 @@ def time_panel(diag):
     """Residuals over time: a moving mean per channel."""
     fig, ax = subplots(figsize=(13, 3.2))
     for ch, d in diag.residuals.items():
+        if len(d.residual) == 0:                  # a channel this log does not measure
+            continue
         order = np.argsort(d.time)
         t, r = d.time[order], d.residual[order]
         w = max(len(r) // 60, 1)

@@ -30,6 +30,7 @@ PHYS_HZ = 200                                   # integration rate of the true m
 CMD_HZ = {"table": 10, "continuous": 20}        # command-row rate
 MIN_RANGE, MAX_RANGE = 0.3, 8.0                 # sensor distance window (m)
 FOV = {"table": math.radians(70.0), "continuous": math.pi}   # camera +-70 deg; range sensor all around
+# a range-only table robot carries a ranging radio (all around, metres), not a camera whose blob size is read
 P_DETECT = 0.5                                  # per landmark per command row
 BEARING_SIGMA = 0.025                           # rad
 READING_SIGMA = {"table": 1.0, "continuous": 0.05}   # px / m
@@ -103,8 +104,13 @@ def _draw_actions(rng):
     return ids, vel, att
 
 
+def _ranging(kind, sensor):
+    """The sensor family a log of this kind and channel mode reads: "table" (camera) or "continuous" (radio)."""
+    return "continuous" if sensor == "range" else kind
+
+
 def _draw_sensor(rng, kind):
-    """Non-polynomial apparent-size curve (table) or affine time-of-flight range (continuous)."""
+    """Non-polynomial apparent-size curve (table camera) or affine time-of-flight range (ranging radio)."""
     if kind == "table":
         p = {"a": float(rng.uniform(60, 120)), "b": float(rng.uniform(0.05, 0.3)),
              "c": float(rng.uniform(-2, 2))}
@@ -321,14 +327,14 @@ def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s, m
     dy = lm_true[None, :, 1] - pose[:, None, 1]
     d = np.hypot(dx, dy)
     brg = _wrap(np.arctan2(dy, dx) - pose[:, None, 2])
-    fov = FOV[kind]
+    fov = FOV[_ranging(kind, sensor)]
     seen = (d >= min_range) & (d <= MAX_RANGE) & (np.abs(brg) <= fov) & (rng.random(d.shape) < P_DETECT)
     kk, ll = np.nonzero(seen)
     dd, aa = d[kk, ll], brg[kk, ll]
     clean = curve(dd)
     if effect == "lens_distortion":
         clean = clean * (1.0 + s * aa ** 2)
-    sig = READING_SIGMA[kind] * ((1.0 + s * dd) if effect == "range_dependent_noise" else 1.0)
+    sig = READING_SIGMA[_ranging(kind, sensor)] * ((1.0 + s * dd) if effect == "range_dependent_noise" else 1.0)
     reading = clean + sig * rng.standard_normal(len(dd))
     bearing = _wrap(aa + BEARING_SIGMA * rng.standard_normal(len(dd)))
     lm = np.array(lm_ids)[ll]
@@ -390,7 +396,7 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
     field = _draw_field(r_world)
     lm_ids, lm_map = _draw_landmarks(r_world, field)
     act_ids, vel, att = _draw_actions(r_world)
-    curve_info, curve = _draw_sensor(r_world, kind)
+    curve_info, curve = _draw_sensor(r_world, _ranging(kind, sensor))
     s, geom = _draw_effect(r_effect, effect, strength, field, lm_ids)
     lm_true = lm_map.copy()
     if effect == "landmark_offset":
@@ -428,10 +434,10 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
                       "true": {str(i): [float(x), float(y)] for i, (x, y) in zip(lm_ids, lm_true)}},
         "effect": effect, "strength": s, "geometry": geom,
         "sensor_curve": {**curve_info, "samples": [[float(a), float(b)] for a, b in zip(d, curve(d))]},
-        "noise": {"reading_sigma": READING_SIGMA[kind], "bearing_sigma": BEARING_SIGMA,
+        "noise": {"reading_sigma": READING_SIGMA[_ranging(kind, sensor)], "bearing_sigma": BEARING_SIGMA,
                   "slip_tau": SLIP_TAU, "slip_fraction": SLIP_FRAC, "slip_floor": list(SLIP_FLOOR),
                   "jitter": list(JITTER)},
-        "sensing": {"p_detect": P_DETECT, "fov": FOV[kind], "min_range": min_range,
+        "sensing": {"p_detect": P_DETECT, "fov": FOV[_ranging(kind, sensor)], "min_range": min_range,
                     "max_range": MAX_RANGE},
         "rates": {"physics_hz": PHYS_HZ, "command_hz": hz},
         "stats": {"fraction_outside": float(np.mean(_clearance(field, fine[:, 0], fine[:, 1]) < 0)),

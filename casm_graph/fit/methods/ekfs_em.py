@@ -15,6 +15,11 @@ every iteration (its M-step is the smoothed first pose).
 
 ``ekfs-em-learned`` (:func:`fit_learned`) is the same algorithm with Sigma_A learned and the
 initialiser's start: the variant the 8-minute cross-check compares with the graph methods.
+
+On continuous ``v,w`` logs each step's displacement comes from the command map and the action M-step
+regresses the expected displacements on the map's basis (``Model.fitted_to_steps``); the paper has no
+start for a command map and a zero map never moves, so both variants start from the continuous window
+start (:func:`casm_graph.fit.continuous.initialise`).
 """
 from __future__ import annotations
 
@@ -22,7 +27,7 @@ import time
 
 import numpy as np
 
-from casm_graph.fit import ekfs
+from casm_graph.fit import continuous, ekfs
 from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.io.log import Log, wrap
@@ -43,8 +48,13 @@ def _observations(log: Log):
     return order, ptr, np.ascontiguousarray(lm), log.obs_reading[order].copy(), log.obs_bearing[order].copy()
 
 
+def start_of(log: Log, start: Model):
+    """The log-only start (poses and a model): the table's initialiser, or the continuous-command window start."""
+    return initialise(log, start) if log.controls is None else continuous.initialise(log, start)
+
+
 def velocity_errors(model: Model, truth: dict | None) -> np.ndarray | None:
-    if truth is None:
+    if truth is None or model.command is not None:
         return None
     tv = np.array([truth["action_model"]["velocities"][str(int(a))] for a in model.action_ids])
     return np.sqrt(np.mean((model.velocities - tv) ** 2, axis=0))
@@ -68,18 +78,19 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     progress = progress or Progress()
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
+    from_initialiser = from_initialiser or log.controls is not None   # a zero command map never moves
     order, ptr, lm, z_r, z_b = _observations(log)
-    act = np.searchsorted(start.action_ids, log.action)
     dt = log.dt
     sig = np.asarray(start.motion_noise, float)
-    vel = start.velocities.copy()
-    poly = np.asarray(start.reading_poly, float).copy()
-    s_r, s_b = float(start.reading_sigma), float(start.bearing_sigma)
+    model = start
     if start_pose is None or from_initialiser:
         progress.stage("start pose", None)
-        init = initialise(log, start)
+        init = start_of(log, start)
         if from_initialiser:
-            vel, poly = init.model.velocities.copy(), np.asarray(init.model.reading_poly, float).copy()
+            model = start.with_(velocities=init.model.velocities.copy(), command=init.model.command,
+                                reading_poly=np.asarray(init.model.reading_poly, float).copy())
+    poly = np.asarray(model.reading_poly, float).copy()
+    s_r, s_b = float(start.reading_sigma), float(start.bearing_sigma)
     if start_pose is None:
         mu0 = init.poses[0]
         P0 = np.diag(np.square(START_STD))
@@ -87,24 +98,22 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         mu0, P0 = np.asarray(start_pose[0], float), np.asarray(start_pose[1], float)
     use = np.ones(len(z_r), bool)
     deg = len(poly) - 1
-    counts = np.bincount(act, minlength=len(vel))
     history = {"log_likelihood": [], "velocity_rms": [], "velocities": [], "heading_rms": [], "seconds": []}
     true_heading = (log.truth[:, 3] if truth is not None and log.truth is not None and len(log.truth) == log.steps + 1
                     else None)
     best = None
     progress.stage("ekfs-em", max_iterations)
     for it in range(max_iterations):
-        u = vel[act] * dt[:, None]
+        u = model.step_velocities(log) * dt[:, None]
         mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         if it == 0:
             use = ~(m2 > OUTLIER_M2)
             mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
-        model = start.with_(velocities=vel.copy(), reading_poly=poly.copy(), reading_sigma=s_r, bearing_sigma=s_b,
-                            motion_noise=sig.copy())
+        model = model.with_(reading_poly=poly.copy(), reading_sigma=s_r, bearing_sigma=s_b, motion_noise=sig.copy())
         history["log_likelihood"].append(float(ll))
         err = velocity_errors(model, truth)
         history["velocity_rms"].append(None if err is None else err.tolist())
-        history["velocities"].append(model.velocities)
+        history["velocities"].append(model.velocities if model.command is None else model.command.params)
         history["heading_rms"].append(None if true_heading is None else
                                       float(np.sqrt(np.mean(wrap(mu_a[:, 2] - true_heading) ** 2))))
         history["seconds"].append(time.perf_counter() - t0)
@@ -122,11 +131,9 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         if need_poses:
             best = (best[0], best[1], best[2], (mu_g, P_g))
         d, d_var = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig, variance=learn_action_noise)
-        new = np.zeros_like(vel)
-        np.add.at(new, act, d / dt[:, None])
-        vel = np.where(counts[:, None] > 0, new / np.maximum(counts, 1)[:, None], vel)
+        model = model.fitted_to_steps(log, d)
         if learn_action_noise:
-            resid = d - vel[act] * dt[:, None]
+            resid = d - model.step_velocities(log) * dt[:, None]
             resid[:, 2] = wrap(resid[:, 2])
             em = np.sqrt(np.mean(resid ** 2 + d_var, axis=0))
             sig = np.maximum(sig * (em / sig) ** overrelax, MIN_ACTION_SIGMA)
@@ -138,9 +145,11 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         dist = np.hypot(rel[:, 0], rel[:, 1])
         ok_r = use & ~np.isnan(z_r)
         ok_b = use & ~np.isnan(z_b)
-        poly = np.polynomial.polynomial.polyfit(dist[ok_r], z_r[ok_r], deg)
-        s_r = float(np.sqrt(np.mean((np.polynomial.polynomial.polyval(dist[ok_r], poly) - z_r[ok_r]) ** 2)))
-        s_b = float(np.sqrt(np.mean(wrap(np.arctan2(rel[ok_b, 1], rel[ok_b, 0]) - s[ok_b, 2] - z_b[ok_b]) ** 2)))
+        if ok_r.any():
+            poly = np.polynomial.polynomial.polyfit(dist[ok_r], z_r[ok_r], deg)
+            s_r = float(np.sqrt(np.mean((np.polynomial.polynomial.polyval(dist[ok_r], poly) - z_r[ok_r]) ** 2)))
+        if ok_b.any():
+            s_b = float(np.sqrt(np.mean(wrap(np.arctan2(rel[ok_b, 1], rel[ok_b, 0]) - s[ok_b, 2] - z_b[ok_b]) ** 2)))
         mu0, P0 = mu_g[0].copy(), P_g[0] + np.diag([1e-4, 1e-4, 1e-4])
 
     ll, best_it, model, poses = best
@@ -151,7 +160,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - mu_g[log.obs_step, :2]).T)
     d = d[~np.isnan(log.obs_reading)]
     pose_std = np.sqrt(np.stack([P_g[:, 0, 0], P_g[:, 1, 1], P_g[:, 2, 2]], axis=1))
-    model = model.with_(distance_range=(float(d.min()), float(d.max())),
+    model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": name, "iterations": it + 1, "best_iteration": best_it + 1,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": float(ll),
                              "converged": bool(it - best_it >= patience), "outliers_pruned": int((~use).sum())})

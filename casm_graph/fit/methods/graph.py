@@ -36,6 +36,9 @@ from casm_graph.io.log import Log
 from casm_graph.models.effects.false_detections import FalseDetections, inlier_weights, outlier_density
 from casm_graph.models.model import Model
 
+HEADING_AGREEMENT = 0.9      # ranges only: chained headings agreeing less than this make the start doubtful
+HEADING_WARNING = ("ranges alone place this robot's headings poorly ({}): the model may be wrong; bearings, "
+                   "longer runs of each action or more precise ranges fix the headings better")
 RIDGE_WARNING = ("the fitted graph is nearly singular (a poor fit or a log that cannot pin the model down): "
                  "standard deviations computed with a ridge of {:g} x the largest information; treat them as lower bounds")
 
@@ -102,7 +105,7 @@ def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: 
 
 
 def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress, weight=None):
-    problem = G.Problem(log, lay, model, weight)
+    problem = G.Problem(log, lay, model, weight, anchor=G.heading_anchor(log, poses))
 
     def tick(c):
         cost.append(c)
@@ -146,10 +149,15 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
     realiased: list[int] = []
     progress.stage("initialise", None)
     init = initialise(log, start)
+    if not np.any(~np.isnan(log.obs_bearing)) and not init.heading_agreement >= HEADING_AGREEMENT:
+        why = (f"consecutive moves agree to {init.heading_agreement:.2f}, under {HEADING_AGREEMENT}"
+               if np.isfinite(init.heading_agreement) else "too few repeated moves to check them")
+        warnings.warn(HEADING_WARNING.format(why), RuntimeWarning, stacklevel=2)
     model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float),
                              bearing_sigma=float(start.bearing_sigma))
     lay = G.layout(log, model, stride=o.coarse_stride)
     poses = init.poses[lay.knots]
+    bearings = bool(np.any(~np.isnan(log.obs_bearing)))
     fraction, weight = (FalseDetections.start[0] if mixture else 0.0), None
     progress.stage("coarse graph", o.coarse_rounds)
     for r in range(o.coarse_rounds):
@@ -160,7 +168,7 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
         iterations += h.iterations
         poses = st.poses
         model = estimate_noise(problem, st, model, seed=seed + r, relax=o.coarse_relax)
-        if r in o.realias_after:
+        if r in o.realias_after and bearings:    # ranges only: the start's links already chose among the aliases
             model, poses, changed = realias(log, lay, model, poses)
             realiased.extend(changed)
         progress.step(1)
@@ -228,10 +236,13 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                              "seconds": round(time.perf_counter() - t0, 3),
                              "log_likelihood": ll, "converged": bool(converged),
                              "outliers_pruned": int(pruned.sum()),
-                             "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1}},
+                             "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1},
+                             **({} if np.any(~np.isnan(log.obs_bearing)) else {"heading_agreement": (
+                                 round(init.heading_agreement, 4) if np.isfinite(init.heading_agreement) else None)})},
                         effects={FalseDetections.name: {"fraction": fraction}} if mixture else {})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
                iterations=iterations, converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
+                      "heading_agreement": init.heading_agreement,
                       "realiased_actions": realiased, "marginals_ridge": ridge,
                       "outliers_pruned": np.flatnonzero(pruned).tolist()})

@@ -6,7 +6,9 @@ poses (:mod:`casm_graph.graph.chain`, equal to ``gtsam.Marginals`` to machine pr
 form, with exact Gaussian expectations and no sampling: E[R(-theta) dp] by Stein's lemma for the
 table, Gaussian moments of the linearised distance for the polynomial regression, expected squared
 residuals for the sigmas and the motion noise. The objective recorded per iteration is the Laplace
-marginal likelihood log p(O | model).
+marginal likelihood log p(O | model). On continuous ``v,w`` logs the E-step holds each step's velocity
+at the command map's (:func:`step_graph`) and the M-step regresses the expected displacements on the
+map's basis; the start is the continuous window start.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import time
 
 import numpy as np
 
+from casm_graph.fit import continuous
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.methods.graph import GraphOptions, coarse_start
 from casm_graph.fit.outliers import outlying, prune
@@ -76,17 +79,11 @@ def expected_displacement(poses, W, X):
     return Ed, L @ S @ np.transpose(L, (0, 2, 1))
 
 
-def m_step(log: Log, lay: G.Layout, model: Model, poses, W, X) -> Model:
-    """Closed-form model update from the smoothed poses and their covariances."""
-    act = lay.seg_action
-    dt = lay.seg_dt
+def m_step(log: Log, model: Model, poses, W, X) -> Model:
+    """Closed-form model update from the smoothed poses (one per step) and their covariances."""
     Ed, Cd = expected_displacement(poses, W, X)
-    A = len(model.action_ids)
-    counts = np.bincount(act, minlength=A)
-    vel = np.zeros((A, 3))
-    np.add.at(vel, act, Ed / dt[:, None])
-    vel = np.where(counts[:, None] > 0, vel / np.maximum(counts, 1)[:, None], model.velocities)
-    res = Ed - vel[act] * dt[:, None]
+    new = model.fitted_to_steps(log, Ed)
+    res = Ed - new.step_velocities(log) * log.dt[:, None]
     motion = np.sqrt(np.mean(res ** 2 + np.diagonal(Cd, axis1=1, axis2=2), axis=0))
 
     lm = log.landmark_xy[log.landmark_index]
@@ -97,22 +94,25 @@ def m_step(log: Log, lay: G.Layout, model: Model, poses, W, X) -> Model:
     g = -rel / d[:, None]                         # d dist / d (x, y)
     var_d = np.einsum("ni,nij,nj->n", g, Wp[:, :2, :2], g)
     ok = ~np.isnan(log.obs_reading)
-    deg = len(model.reading_poly) - 1
-    mom = gaussian_moments(d[ok], var_d[ok], 2 * deg)
-    idx = np.arange(deg + 1)
-    EPP = mom[:, idx[:, None] + idx[None, :]]     # E[phi phi^T]
-    EP = mom[:, :deg + 1]
-    z = log.obs_reading[ok]
-    poly = np.linalg.solve(EPP.sum(0), (EP * z[:, None]).sum(0))
-    s_r = np.sqrt(np.mean(np.einsum("i,nij,j->n", poly, EPP, poly) - 2 * z * (EP @ poly) + z * z))
+    poly, s_r = np.asarray(model.reading_poly, float), float(model.reading_sigma)
+    if ok.any():
+        deg = len(poly) - 1
+        mom = gaussian_moments(d[ok], var_d[ok], 2 * deg)
+        idx = np.arange(deg + 1)
+        EPP = mom[:, idx[:, None] + idx[None, :]]     # E[phi phi^T]
+        EP = mom[:, :deg + 1]
+        z = log.obs_reading[ok]
+        poly = np.linalg.solve(EPP.sum(0), (EP * z[:, None]).sum(0))
+        s_r = np.sqrt(np.mean(np.einsum("i,nij,j->n", poly, EPP, poly) - 2 * z * (EP @ poly) + z * z))
 
     okb = ~np.isnan(log.obs_bearing)
-    r2 = d ** 2
-    h = np.column_stack([rel[:, 1] / r2, -rel[:, 0] / r2, -np.ones(len(d))])   # d bearing / d (x, y, theta)
-    eb = (log.obs_bearing - (np.arctan2(rel[:, 1], rel[:, 0]) - p[:, 2]) + np.pi) % (2 * np.pi) - np.pi
-    s_b = np.sqrt(np.mean(eb[okb] ** 2 + np.einsum("ni,nij,nj->n", h, Wp, h)[okb]))
-    return model.with_(velocities=vel, reading_poly=poly, reading_sigma=float(s_r), bearing_sigma=float(s_b),
-                       motion_noise=motion)
+    s_b = float(model.bearing_sigma)
+    if okb.any():
+        r2 = d ** 2
+        h = np.column_stack([rel[:, 1] / r2, -rel[:, 0] / r2, -np.ones(len(d))])   # d bearing / d (x, y, theta)
+        eb = (log.obs_bearing - (np.arctan2(rel[:, 1], rel[:, 0]) - p[:, 2]) + np.pi) % (2 * np.pi) - np.pi
+        s_b = np.sqrt(np.mean(eb[okb] ** 2 + np.einsum("ni,nij,nj->n", h, Wp, h)[okb]))
+    return new.with_(reading_poly=poly, reading_sigma=float(s_r), bearing_sigma=float(s_b), motion_noise=motion)
 
 
 def laplace_log_likelihood(problem: G.Problem, st: G.State, logdet: float) -> float:
@@ -127,29 +127,43 @@ def laplace_log_likelihood(problem: G.Problem, st: G.State, logdet: float) -> fl
 
 
 def _vec(m: Model) -> np.ndarray:
-    return np.concatenate([m.velocities.ravel(), m.reading_poly, np.log([m.reading_sigma, m.bearing_sigma]),
-                           np.log(m.motion_noise)])
+    action = m.velocities.ravel() if m.command is None else m.command.params
+    return np.concatenate([action, m.reading_poly, np.log([m.reading_sigma, m.bearing_sigma]), np.log(m.motion_noise)])
 
 
 def _unvec(x: np.ndarray, like: Model) -> Model:
-    A, D = like.velocities.size, len(like.reading_poly)
+    A = like.velocities.size if like.command is None else len(like.command.params)
+    D = len(like.reading_poly)
     sig = np.exp(x[A + D:])
-    return like.with_(velocities=x[:A].reshape(-1, 3), reading_poly=x[A:A + D], reading_sigma=float(sig[0]),
-                      bearing_sigma=float(sig[1]), motion_noise=sig[2:5])
+    action = ({"velocities": x[:A].reshape(-1, 3)} if like.command is None
+              else {"command": like.command.with_params(x[:A])})
+    return like.with_(**action, reading_poly=x[A:A + D], reading_sigma=float(sig[0]), bearing_sigma=float(sig[1]),
+                      motion_noise=sig[2:5])
 
 
-def em_map(log: Log, lay: G.Layout, model: Model, poses: np.ndarray):
+def step_graph(log: Log, model: Model) -> tuple[G.Layout, Model]:
+    """A pose at every step and the model as the graph of a table sees it: a table's own layout, or, for a command
+    map, every step its own action whose velocity is the map's at that step (the E-step holds them fixed)."""
+    if model.command is None:
+        return G.layout(log, model, 1), model
+    T = log.steps
+    lay = G.Layout(np.arange(T + 1), np.arange(T), np.ones(T, int), log.dt.copy(), log.obs_step.copy(), T)
+    return lay, model.with_(action_ids=np.arange(T), velocities=model.step_velocities(log))
+
+
+def em_map(log: Log, model: Model, poses: np.ndarray):
     """One EM step: E-step at ``model`` (warm-started from ``poses``), then the M-step.
 
     Returns log p(O | model), the updated model, the smoothed poses and their marginals.
     """
-    problem = G.Problem(log, lay, model)
-    st, _ = least_squares(problem, G.state(poses, model), max_iterations=10, freeze_parameters=True)
+    lay, seen = step_graph(log, model)
+    problem = G.Problem(log, lay, seen)
+    st, _ = least_squares(problem, G.state(poses, seen), max_iterations=10, freeze_parameters=True)
     D, B = chain.information_blocks(problem, st)
     cov, cross, logdet = chain.select_inverse(D, B)
     ll = laplace_log_likelihood(problem, st, logdet)
     W, X = _world(st.poses, cov, cross)
-    return ll, m_step(log, lay, model, st.poses, W, X), st.poses, W
+    return ll, m_step(log, model, st.poses, W, X), st.poses, W
 
 
 @register("graph-em")
@@ -160,11 +174,19 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     that start's)."""
     progress = progress or Progress()
     t0 = time.perf_counter()
-    co = coarse_start(log, start, seed, progress, options=options)
-    model, poses = co.model, co.poses
+    if log.controls is None:
+        co = coarse_start(log, start, seed, progress, options=options)
+        model, poses = co.model, co.poses
+    else:                                          # the continuous start: window start, nominal command map
+        progress.stage("initialise", None)
+        init = continuous.initialise(log, start)
+        model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float),
+                                 bearing_sigma=float(start.bearing_sigma))
+        if not np.isfinite(model.reading_sigma):
+            model = model.with_(reading_sigma=float(start.reading_sigma))
+        poses = init.poses
     pruned = outlying(log, model, poses)          # gross outliers out, as graph prunes them: the M-step is Gaussian
     log = prune(log, pruned)
-    lay = G.layout(log, model, 1)
     history = {"log_likelihood": [], "velocity_rms": [], "seconds": [], "squarem": []}
     progress.stage("graph-em", max_iterations)
     tv = None
@@ -172,7 +194,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         tv = np.array([truth["action_model"]["velocities"][str(int(a))] for a in model.action_ids])
 
     def step(m, p):
-        ll, new, p, W = em_map(log, lay, m, p)
+        ll, new, p, W = em_map(log, m, p)
         history["log_likelihood"].append(ll)
         if tv is not None:
             history["velocity_rms"].append(np.sqrt(np.mean((m.velocities - tv) ** 2, axis=0)).tolist())
@@ -206,7 +228,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
             history["squarem"].append(None)
     pose_std = np.sqrt(np.stack([W[:, 0, 0], W[:, 1, 1], W[:, 2, 2]], axis=1))
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[~np.isnan(log.obs_reading)]
-    model = model.with_(distance_range=(float(d.min()), float(d.max())),
+    model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": "graph-em", "iterations": it + 1, "seconds": round(time.perf_counter() - t0, 3),
                              "log_likelihood": float(ll), "converged": converged,
                              "outliers_pruned": int(pruned.sum())})

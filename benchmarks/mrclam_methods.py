@@ -1,0 +1,72 @@
+"""The four calibration methods on each MRCLAM run-7 robot: do the EM methods agree with graph on real data?
+
+Issue 20's bound: the command maps of ``graph-em`` and ``ekfs-em`` within 5 % of the velocity range of
+``graph``'s. Per robot and method: the map difference from graph's, RMS over the commands the robot ran, as a
+share of the range of graph's velocities over those commands (forward and turn), the position RMS against
+Vicon, and the wall time (methods run one after another on one core).
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/mrclam_methods.py [--robots 1 2 3 4 5] [--minutes M]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import casm_graph as cg  # noqa: E402
+from casm_graph.io import mrclam  # noqa: E402
+
+METHODS = ("graph", "graph-em", "ekfs-em-learned", "ekfs-em")
+
+
+def one(data: Path, robot: int, minutes: float | None) -> dict:
+    log, _ = mrclam.load_robot(data, robot)
+    if minutes:
+        log = log.window(log.t[0], log.t[0] + 60 * minutes)
+    out = {}
+    for m in METHODS:
+        t = time.perf_counter()
+        cal = cg.calibrate(log, method=m)
+        v = cal.model.command.velocities(log.controls, log.dt)
+        tr = cal.trajectory
+        pos = float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
+        out[m] = {"v": v, "position_rms": pos, "seconds": time.perf_counter() - t,
+                  "v_coef": cal.model.command.v_coef.tolist(), "w_coef": cal.model.command.w_coef.tolist()}
+    ref = out["graph"]["v"]
+    span = np.ptp(ref, axis=0)
+    for m in METHODS:
+        d = np.sqrt(np.mean((out[m]["v"] - ref) ** 2, axis=0))
+        out[m]["speed_vs_graph"] = float(d[0] / span[0])
+        out[m]["turn_vs_graph"] = float(d[2] / span[2])
+        del out[m]["v"]
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(mrclam.find_data()))
+    ap.add_argument("--robots", type=int, nargs="+", default=[1, 2, 3, 4, 5])
+    ap.add_argument("--minutes", type=float)
+    ap.add_argument("--json")
+    a = ap.parse_args(argv)
+    rows = {}
+    print("| robot | method | speed map vs graph, % of range | turn map vs graph, % of range | position RMS m | s |")
+    print("|---|---|---:|---:|---:|---:|")
+    for r in a.robots:
+        rows[r] = one(Path(a.data), r, a.minutes)
+        for m, e in rows[r].items():
+            print(f"| {r} | {m} | {100 * e['speed_vs_graph']:.1f} | {100 * e['turn_vs_graph']:.1f} | "
+                  f"{e['position_rms']:.3f} | {e['seconds']:.0f} |", flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
