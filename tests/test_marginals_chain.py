@@ -15,7 +15,7 @@ from casm_graph.fit.methods import METHODS
 from casm_graph.fit.methods.graph import world_std
 from casm_graph.fit.outliers import prune
 from casm_graph.fit.solve import RIDGES, chain_marginals, marginals
-from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver
+from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver, pose_equations, solve_arrow
 from casm_graph.graph import noise
 from casm_graph.graph import table as G
 from casm_graph.models.effects import get as get_effect
@@ -108,6 +108,23 @@ def test_floor_graph_damped_step_equals_gtsam(hooked):
     for a, b in ((ours.poses, theirs.poses), (ours.params, theirs.params), (ours.poly, theirs.poly),
                  (ours.theta, theirs.theta)):
         np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize("anchor", [None, 0.3])
+def test_table_pose_chain_step_equals_gtsam(table_fit, anchor):
+    """The table graph's poses alone (graph-em's E-step), with and without the ranges-only heading anchor: the
+    chain's own damped step (chain.pose_equations) solves GTSAM's damped poses-only graph."""
+    log, fit = table_fit
+    lay = G.layout(log, fit.model, stride=1)
+    problem = G.Problem(log, lay, fit.model, anchor=anchor)
+    st = G.state(fit.poses + np.random.default_rng(0).normal(0.0, 0.02, fit.poses.shape), fit.model)
+    lam = 1e-3
+    dp, _ = solve_arrow(*pose_equations(problem, st), lam)
+    g = problem.linearize(st, poses_only=True)
+    for i in range(lay.n_poses):
+        g.add(X(i), np.sqrt(lam) * np.eye(3), np.zeros(3), gtsam.noiseModel.Unit.Create(3))
+    delta = g.optimize()
+    np.testing.assert_allclose(dp, np.array([delta.at(X(i)) for i in range(lay.n_poses)]), rtol=1e-7, atol=1e-10)
 
 
 def tiny(pin: np.ndarray):

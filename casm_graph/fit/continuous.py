@@ -386,10 +386,12 @@ class Problem:
     def keys_dims(self) -> list[tuple[int, int]]:
         return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_m), (C(0), self.n_poly)]
 
-    def ordering(self, poses_only: bool = False) -> gtsam.Ordering:
-        """Poses in time order, then the command map and polynomial (see :func:`casm_graph.graph.table.elimination_order`)."""
-        keys = [X(i) for i in range(self.lay.n_poses)]
-        return gtsam.Ordering(keys if poses_only else keys + [M(0), C(0)])
+    def effects_std(self, m_std: np.ndarray) -> dict:
+        """Each least-squares effect parameter's std, by name, from the std of M(0)'s entries (the command map's,
+        then the effect parameters least squares moves)."""
+        col = {int(c): self.n_params + j for j, c in enumerate(self.ls_index)}
+        return {e.name: {p: float(m_std[col[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
+                for e, s in zip(self.effects, self.slices) if not e.noise_only}
 
     def jacobian(self, st: State, poses_only: bool = False, robust_weights: bool = True):
         """Whitened sparse Jacobian, residual and the row groups of each noise channel (see :meth:`rows`);
@@ -670,17 +672,28 @@ def log_likelihood(log: Log, lay: Layout, model: Model, knot_poses: np.ndarray) 
     return problem_log_likelihood(problem, state(knot_poses, model), model)
 
 
-def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
-        marginals: bool = True, start_options: W.WindowOptions | None = None) -> Fit:
-    """Calibrate a continuous-command log: global start (searched as ``start_options`` say), coarse graph in
-    rounds, finer graph, marginals."""
+@dataclass
+class CoarseStart:
+    """The global start settled on the coarse graph: model, poses at every step, and how it got there."""
+
+    model: Model
+    poses: np.ndarray                 # (T+1, 3)
+    trace: list
+    stages: list
+    iterations: int
+    starts: list                      # the window starts taken through the held rounds (best agreement first)
+    held: list                        # the log-likelihood of each after the held rounds
+    best: int                         # the one that went on
+
+
+def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
+                 start_options: W.WindowOptions | None = None) -> CoarseStart:
+    """Global start (searched as ``start_options`` say), each candidate range slope through the held coarse
+    rounds, the likeliest through the free coarse rounds: where ``fit`` and ``graph-em`` begin."""
     progress = progress or Progress()
-    t0 = time.perf_counter()
-    start = start or start_model(log)
     trace, stages = [], []
     progress.stage("initialise", None)
-    start_options = start_options or W.WindowOptions()
-    init = initialise(log, start, start_options)
+    init = initialise(log, start, start_options or W.WindowOptions())
     noise = {"motion_noise": np.asarray(start.motion_noise, float), "bearing_sigma": float(start.bearing_sigma)}
     coarse = layout(log, COARSE_KNOT_DT)
     starts = [init, *init.alternatives]
@@ -699,8 +712,21 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     it0 = sum(h[3] for h in held)
     model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, kp, COARSE_ROUNDS,
                                                COARSE_ITERATIONS, seed, "coarse", trace, stages, progress)
-    it1 += it0
-    poses = fill_in(log, model, coarse.knots, kp)
+    return CoarseStart(model, fill_in(log, model, coarse.knots, kp), trace, stages, it0 + it1, starts,
+                       [h[0] for h in held], best)
+
+
+def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
+        marginals: bool = True, start_options: W.WindowOptions | None = None) -> Fit:
+    """Calibrate a continuous-command log: global start (searched as ``start_options`` say), coarse graph in
+    rounds, finer graph, marginals."""
+    progress = progress or Progress()
+    t0 = time.perf_counter()
+    start = start or start_model(log)
+    start_options = start_options or W.WindowOptions()
+    co = coarse_start(log, start, seed, progress, start_options)
+    model, poses, trace, stages, it1 = co.model, co.poses, co.trace, co.stages, co.iterations
+    starts, best = co.starts, co.best
     full = layout(log, FULL_KNOT_DT)
     it2 = 0
     if RMN.RegionalMotionNoise.name in model.effects:
@@ -732,13 +758,13 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": ll,
                              "converged": converged, "knot_dt": FULL_KNOT_DT,
                              "start_options": W.options_json(start_options),
-                             "start_slopes": [[round(s.slope, 6), round(h[0], 1)] for s, h in zip(starts, held)
+                             "start_slopes": [[round(s.slope, 6), round(h, 1)] for s, h in zip(starts, co.held)
                                               if np.isfinite(s.slope)],
                              "outliers_set_aside": {"reading": int((~sel & ~np.isnan(log.obs_reading)).sum()),
                                                     "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())}})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=it1 + it2,
                converged=converged, log_likelihood=ll,
-               notes={"hypothesis": list(init.hypothesis), "start_log_evidence": init.log_evidence,
+               notes={"hypothesis": list(starts[0].hypothesis), "start_log_evidence": starts[0].log_evidence,
                       "start_slope": starts[best].slope,
                       "windows_placed": starts[best].windows_placed, "start_model": starts[best].model,
                       "start_poses": starts[best].poses, "knots": full.knots})
@@ -761,10 +787,7 @@ def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Probl
     mstd = np.sqrt(np.clip(np.diag(m.marginalCovariance(M(0))), 0, None))
     cstd = np.sqrt(np.diag(m.marginalCovariance(C(0))))
     model = model.with_(command=model.command.with_params(st.params, mstd[:problem.n_params]), reading_poly_std=cstd)
-    pos = {int(c): problem.n_params + j for j, c in enumerate(problem.ls_index)}
-    effect_std = {e.name: {p: float(mstd[pos[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
-                  for e, s in zip(problem.effects, problem.slices) if not e.noise_only}
-    return model, pose_std, effect_std
+    return model, pose_std, problem.effects_std(mstd)
 
 
 # --------------------------------------------------------------------------- effects for continuous commands
@@ -902,19 +925,15 @@ def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
 def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=()):
     """(log-likelihood with the noise levels concentrated out, model) after settling ``model`` with ``effects``
     on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
-    fixed), so two models compare as a likelihood ratio on the same data; -inf where GTSAM finds the graph
-    indeterminate."""
+    fixed), so two models compare as a likelihood ratio on the same data."""
     problem = Problem(log, lay, model, use, start, effects)
-    try:
-        st, _ = least_squares(problem, state(start, model, effects), max_iterations=PROFILE_ITERATIONS)
-        model = _ml_noise(problem, st, with_state(model, st, effects))
-        if problem.noise_effects:
-            model = noise_effects_step(problem, st, model)
-            model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
-        problem = Problem(log, lay, model, use, st.poses, effects)
-        st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
-    except RuntimeError:
-        return -np.inf, model
+    st, _ = least_squares(problem, state(start, model, effects), max_iterations=PROFILE_ITERATIONS)
+    model = _ml_noise(problem, st, with_state(model, st, effects))
+    if problem.noise_effects:
+        model = noise_effects_step(problem, st, model)
+        model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
+    problem = Problem(log, lay, model, use, st.poses, effects)
+    st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
     return _concentrated_log_likelihood(problem, st), with_state(model, st, effects)
 
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from casm_graph.graph.chain import arrow_blocks, arrow_inverse
-from casm_graph.graph.table import Problem, State
+from casm_graph.graph.chain import arrow_blocks, arrow_inverse, pose_equations, solve_arrow
+from casm_graph.graph.table import Problem, State, retract_poses
 
 
 @dataclass
@@ -105,7 +105,8 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
 
     ``freeze_parameters`` holds the velocity table and polynomial where they are (poses only).
     A problem with ``normal_equations``/``solve_damped`` (the effect graph, whose parameters form one
-    dense block) is solved by its own pose-chain elimination; otherwise GTSAM solves the linear graph.
+    dense block) is solved by its own pose-chain elimination, and so is a table graph's pose chain alone
+    (:func:`casm_graph.graph.chain.pose_equations`); otherwise GTSAM solves the linear graph.
     """
     hist = History()
     keys_dims = problem.keys_dims()
@@ -114,19 +115,24 @@ def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol
     cost = problem.cost(st)
     hist.cost.append(cost)
     direct = hasattr(problem, "solve_damped")
+    chain_only = freeze_parameters and not direct and isinstance(problem, Problem)   # a table graph's poses alone
     damping = {}                # lam moves by factors of ten: each level's damping graph is built once
     # the problem's own elimination order when it has one (GTSAM's default COLAMD costs time quadratic
     # in the number of poses on a long log); the same for every iteration, so computed once
-    order = problem.ordering(freeze_parameters) if not direct and hasattr(problem, "ordering") else None
+    order = (problem.ordering(freeze_parameters) if not (direct or chain_only) and hasattr(problem, "ordering")
+             else None)
     for _ in range(max_iterations):
         if direct:
             neq = problem.normal_equations(st, poses_only=freeze_parameters)
+        elif chain_only:
+            neq = pose_equations(problem, st)
         else:
             lin = problem.linearize(st, poses_only=freeze_parameters)
         while True:
-            if direct:
+            if direct or chain_only:
                 try:
-                    trial = problem.retract(st, problem.solve_damped(neq, lam))
+                    trial = (problem.retract(st, problem.solve_damped(neq, lam)) if direct else
+                             State(retract_poses(st.poses, solve_arrow(*neq, lam)[0]), st.velocities, st.poly))
                 except np.linalg.LinAlgError:   # singular at this damping (cancellation in the chain): damp more
                     trial = None
             else:

@@ -38,6 +38,21 @@ def information_blocks(problem: Problem, st: State) -> tuple[np.ndarray, np.ndar
     return D, B
 
 
+def pose_equations(problem: Problem, st: State) -> tuple:
+    """:func:`normal_equations` of a table graph with its table and polynomial held (poses only), for
+    :func:`solve_arrow`: the chain eliminated directly, where GTSAM's solve goes through a Python factor per step."""
+    r = problem.rows(st)
+    Ha, Hb, _ = r.action_J
+    n_h = len(r.anchor_e)
+    hJ = np.zeros((n_h, 3))
+    hJ[:, 2] = 1.0 / ANCHOR_SIGMA
+    knot = np.concatenate([problem.r_knot, problem.b_knot, np.zeros(n_h, int)])
+    Jp = np.concatenate([r.reading_J[0], r.bearing_J, hJ])
+    eo = np.concatenate([r.reading_e, r.bearing_e, r.anchor_e])
+    return normal_equations(Ha, Hb, np.zeros((len(Ha), 3, 0)), r.action_e, knot, Jp, np.zeros((len(knot), 0)), eo,
+                            np.zeros(0), np.zeros(0), poses_only=True)
+
+
 @njit(cache=True)
 def select_inverse(D, B):
     """(Sigma_ii, Sigma_i,i+1, log det H) of the block-tridiagonal H with blocks D (diag) and B (upper)."""

@@ -196,11 +196,8 @@ def command_model(model: Model, ml: ContinuousMarginalLikelihood, x_med: np.ndar
                   distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range)
     theta = st.theta.copy()
     theta[pb.ls_index] += shift[n:m]
-    col = {int(c): n + j for j, c in enumerate(pb.ls_index)}
     effects = {**model.effects, **{e.name: e.describe(theta[s]) for e, s in zip(pb.effects, pb.slices)}}
-    effects_std = {**model.fit.get("effects_std", {}),
-                   **{e.name: {p: float(sd[col[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
-                      for e, s in zip(pb.effects, pb.slices) if not e.noise_only}}
+    effects_std = {**model.fit.get("effects_std", {}), **pb.effects_std(sd[:m])}
     return model.with_(command=model.command.with_params(st.params + shift[:n], sd[:n]), reading_sigma=sr,
                        bearing_sigma=sb, motion_noise=mot, effects=effects, **kw,
                        fit={**model.fit, "effects_std": effects_std,

@@ -8,7 +8,7 @@ table, Gaussian moments of the linearised distance for the polynomial regression
 residuals for the sigmas and the motion noise. The objective recorded per iteration is the Laplace
 marginal likelihood log p(O | model). On continuous ``v,w`` logs the E-step holds each step's velocity
 at the command map's (:func:`step_graph`) and the M-step regresses the expected displacements on the
-map's basis; the start is the continuous window start.
+map's basis; the start is the continuous graph's coarse start, as a table's is the table graph's.
 """
 from __future__ import annotations
 
@@ -174,17 +174,9 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     that start's)."""
     progress = progress or Progress()
     t0 = time.perf_counter()
-    if log.controls is None:
-        co = coarse_start(log, start, seed, progress, options=options)
-        model, poses = co.model, co.poses
-    else:                                          # the continuous start: window start, nominal command map
-        progress.stage("initialise", None)
-        init = continuous.initialise(log, start)
-        model = init.model.with_(motion_noise=np.asarray(start.motion_noise, float),
-                                 bearing_sigma=float(start.bearing_sigma))
-        if not np.isfinite(model.reading_sigma):
-            model = model.with_(reading_sigma=float(start.reading_sigma))
-        poses = init.poses
+    co = (coarse_start(log, start, seed, progress, options=options) if log.controls is None
+          else continuous.coarse_start(log, start, seed, progress))
+    model, poses = co.model, co.poses
     pruned = outlying(log, model, poses)          # gross outliers out, as graph prunes them: the M-step is Gaussian
     log = prune(log, pruned)
     history = {"log_likelihood": [], "velocity_rms": [], "seconds": [], "squarem": []}
