@@ -138,9 +138,8 @@ class Problem:
             if poses is None:
                 raise ValueError(f"{self.noise_effects[0][0].name}: the problem needs the knot poses for its distances")
             self.r_dist = np.hypot(*(self.r_lm - np.asarray(poses)[self.r_knot, :2]).T)
-            th = augmented.theta_from_model(effects, model)
-            for e, sl in self.noise_effects:
-                self.r_scale = self.r_scale * e.reading_scale(th[sl], self.r_dist, {})
+            self.r_scale = augmented.reading_scale(self.noise_effects, augmented.theta_from_model(effects, model),
+                                                   self.r_dist)
         self.lens_k = lens_k(model)
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
@@ -524,11 +523,9 @@ def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GAT
          effects=()) -> tuple[np.ndarray, np.ndarray]:
     """(reading, bearing) masks of the sightings within ``z`` sigmas of the model's prediction."""
     res = sighting_residuals(log, poses_at_obs, model, effects)
-    scale = np.ones(len(res["distance"]))      # the noise effects' factor on each reading's sigma
     noisy = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.noise_only]
-    theta = augmented.theta_from_model(list(effects), model) if noisy else None
-    for e, s in noisy:
-        scale = scale * e.reading_scale(theta[s], res["distance"], {})
+    theta = augmented.theta_from_model(list(effects), model) if noisy else np.zeros(0)
+    scale = augmented.reading_scale(noisy, theta, res["distance"])   # the noise effects' factor on each sigma
     r = np.abs(res["reading"]) / (model.reading_sigma * scale)
     b = np.abs(res["bearing_residual"]) / model.bearing_sigma
     return ~(r > z), ~(b > z)

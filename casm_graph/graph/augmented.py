@@ -77,6 +77,15 @@ def theta_from_model(effects: list[Effect], model: Model) -> np.ndarray:
     return np.array(vals, float)
 
 
+def reading_scale(effect_slices, theta: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """Each reading's sigma factor: the product of the effects' ``reading_scale`` at ``distance`` (``effect_slices``:
+    (effect, its slice of ``theta``) pairs; 1 everywhere without a noise effect)."""
+    scale = np.ones(len(distance))
+    for e, s in effect_slices:
+        scale = scale * e.reading_scale(theta[s], distance, {})
+    return scale
+
+
 def parameter_slices(effects: list[Effect]) -> list[slice]:
     """Each effect's slice of the stacked parameter vector theta, in the effects' order."""
     cuts = np.concatenate([[0], np.cumsum([len(e.params) for e in effects])]).astype(int)
@@ -396,9 +405,7 @@ class EffectProblem:
         rr = self.log.obs_reading - pr["reading"]
         rb = wrap(self.log.obs_bearing - pr["bearing"])
         d = pr["distance"]
-        scale = np.ones_like(d)
-        for e, s in self.sensor_effects:
-            scale = scale * e.reading_scale(st.theta[s], d, {})
+        scale = reading_scale(self.sensor_effects, st.theta, d)
         sr = self.reading_sigma * scale
         lr = np.where(np.isfinite(rr), -0.5 * (rr / sr) ** 2 - np.log(sr) - 0.5 * np.log(2 * np.pi), 0.0)
         lb = np.where(np.isfinite(rb), -0.5 * (rb / self.bearing_sigma) ** 2 - np.log(self.bearing_sigma)
