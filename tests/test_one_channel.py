@@ -169,6 +169,39 @@ def test_range_only_action_table_too_short_to_check_its_headings_warns(tmp_path,
     assert fit["heading_agreement"] is None and np.isfinite(fit["log_likelihood"])
 
 
+def test_bearing_only_action_table_learns_table_and_trajectory(tmp_path):
+    """The independent world's camera robot with its blob sizes dropped: positions by triangulation along the
+    path actions.csv's attempted velocities dead-reckon, headings from the bearings, then the graph."""
+    d = tmp_path / "log"
+    truth = generate(d, kind="table", minutes=4, seed=1, sensor="bearing")
+    log = cg.load_log(d)
+    cal = cg.calibrate(log)
+    pos, head = trajectory_rms(cal, log)
+    assert pos < 0.1 and head < 0.05, (pos, head)
+    true_v = np.array([truth["realized_velocities"][str(int(a))] for a in cal.model.action_ids])
+    rms = np.sqrt(np.mean((cal.model.velocities - true_v) ** 2, axis=0))
+    assert rms[0] < 0.025 and rms[1] < 0.025 and rms[2] < 0.01, rms
+    m = cal.model
+    assert m.channels == ("bearing",) and abs(m.bearing_sigma - 0.025) < 0.005
+    cal.save(tmp_path / "run")
+    sm = json.loads((tmp_path / "run" / "model.json").read_text())["sensor_model"]
+    assert sm["reading_poly"] is None and sm["reading_sigma"] is None
+    assert cg.diagnose(log, cal).verdict == "none"
+
+
+def test_bearing_only_aibo_gets_a_model_and_a_warning(tmp_path, capsys):
+    """The Aibo's bearings (0.5 rad noise) alone place it only to about half a metre: a model, and a warning
+    that says so."""
+    d = tmp_path / "log"
+    assert main(["simulate", str(d), "--minutes", "3", "--seed", "3", "--sensor", "bearing"]) == 0
+    capsys.readouterr()
+    code = main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 0 and "places the robot only to about" in err
+    fit = json.loads((tmp_path / "run" / "model.json").read_text())["fit"]
+    assert np.isfinite(fit["log_likelihood"])
+
+
 @pytest.mark.skipif(PLAZA is None, reason="no Plaza1.mat (set CASM_PLAZA or put it in shared/data/plaza1)")
 def test_plaza_part_from_the_log_alone():
     """The first eight minutes of CMU Plaza 1: trajectory and range curve against the ground truth."""

@@ -257,6 +257,11 @@ def empty_column(col):
     return fn
 
 
+def bearings_only_without_actions_csv(d):
+    empty_column("reading")(d)
+    (d / "actions.csv").unlink()
+
+
 def constant(col, value):
     def fn(d):
         table = rows(d / "observations.csv")
@@ -289,8 +294,8 @@ CRASHES = [
     ("three_commands", short(3), ["commands.csv", "only 3 command step", "too short"]),
     ("one_step_action", one_step_action, ["commands.csv", "row 10", "column 'action'", "action 999",
                                           "only 1 step", "at least 15 command steps"]),
-    ("every_reading_empty", empty_column("reading"), ["observations.csv", "column 'reading'",
-                                                      "a bearing-only log", "action-table logs need readings"]),
+    ("bearings_only_no_actions_csv", bearings_only_without_actions_csv,
+     ["observations.csv", "column 'reading'", "a bearing-only log", "needs actions.csv"]),
     ("few_sightings", few_sightings, ["observations.csv", "only 5 sighting", "at least 10"]),
     ("coincident_landmarks", coincident, ["landmarks.csv", "columns 'x','y'", "coincident",
                                           "sensor polynomial cannot be identified"]),

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from casm_graph.fit.locate import grid_cell, locate
-from casm_graph.fit.windows import inverse_curve
+from casm_graph.fit.windows import inverse_curve, window_start
 from casm_graph.graph import robust
-from casm_graph.io.log import Log, wrap
+from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.model import Model
 
 @dataclass
@@ -271,6 +271,19 @@ def _range_start(log: Log, model: Model, seg_start, seg_of_knot, seg_act, t_knot
     return head, mean, agreement
 
 
+def _bearing_start(log: Log, model: Model, knots: np.ndarray) -> np.ndarray:
+    """Positions at ``knots`` from bearings alone (the headings then come from the bearings as with readings):
+    the window start (:func:`casm_graph.fit.windows.window_start`, triangulation along the path) dead-reckoned
+    with actions.csv's attempted velocities, the only velocity scale such a log has."""
+    if not log.attempted or any(int(a) not in log.attempted for a in model.action_ids):
+        raise LogError("actions.csv: an action-table log with bearings only needs every action's attempted "
+                       "velocity (columns vx_cmd,vy_cmd,w_cmd) for its start; give actions.csv or readings")
+    nominal = np.array([log.attempted[int(a)] for a in log.action], float)
+    speed = 2.0 * float(np.max(np.hypot(nominal[:, 0], nominal[:, 1]), initial=0.05))
+    ws = window_start(log, nominal, len(model.reading_poly), max(speed, 0.05))
+    return ws.poses[knots, :2]
+
+
 def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = None) -> Start:
     """Global start for ``calibrate``: trajectory, velocity table and sensor polynomial (``cell``: the grid
     smoother's, by default :func:`casm_graph.fit.locate.grid_cell`)."""
@@ -282,11 +295,15 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
     obs_knot = np.clip(np.round(log.obs_step / stride).astype(int), 0, len(knots) - 1)
     lm_idx = log.landmark_index
     lm = log.landmark_xy[lm_idx]
-    c_stride = 3 * stride
-    c_knot = np.clip(np.round(log.obs_step / c_stride).astype(int), 0, T // c_stride)
-    loc = locate(log, obs_knot, len(knots), float(np.median(np.diff(t_knot))), c_knot, T // c_stride + 1,
-                 len(model.reading_poly) - 1, cell)
-    mean, poly, res, (p, k), ev = loc.mean, loc.poly, loc.residual, loc.hypothesis, loc.log_evidence
+    if np.all(np.isnan(log.obs_reading)):
+        mean = _bearing_start(log, model, knots)
+        poly, res, (p, k), ev = np.asarray(model.reading_poly, float), None, (np.nan, np.nan), np.nan
+    else:
+        c_stride = 3 * stride
+        c_knot = np.clip(np.round(log.obs_step / c_stride).astype(int), 0, T // c_stride)
+        loc = locate(log, obs_knot, len(knots), float(np.median(np.diff(t_knot))), c_knot, T // c_stride + 1,
+                     len(model.reading_poly) - 1, cell)
+        mean, poly, res, (p, k), ev = loc.mean, loc.poly, loc.residual, loc.hypothesis, loc.log_evidence
 
     # 2. headings per constant-action segment from bearings
     act = log.action
@@ -348,6 +365,6 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
         y = mean[kk[0], 1] + np.concatenate([[0], np.cumsum((sn * v[0] + c * v[1]) * dt[a0:a1])])
         poses[a0:a1 + 1] = np.column_stack([x, y, wrap(th)])
 
-    out = model.with_(velocities=vel, reading_poly=poly,
-                      reading_sigma=float(max(1.4826 * np.median(np.abs(res)), 1e-6)))
+    out = model.with_(velocities=vel, reading_poly=poly, reading_sigma=(
+        model.reading_sigma if res is None else float(max(1.4826 * np.median(np.abs(res)), 1e-6))))
     return Start(poses=poses, model=out, hypothesis=(p, k), log_evidence=float(ev), heading_agreement=agreement)

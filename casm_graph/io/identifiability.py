@@ -43,10 +43,9 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
     if n_r == 0 and n_b == 0:
         raise LogError("observations.csv: no sighting has a reading or a bearing")
     one = "reading" if n_b == 0 else "bearing" if n_r == 0 else None
-    if one == "bearing" and log.action is not None:
-        other = "bearing" if one == "reading" else "reading"
-        raise LogError(f"observations.csv, column '{other}': every cell is empty (a {one}-only log); action-table "
-                       f"logs need readings (ranges) so far (continuous 'v,w' command logs can do with bearings only)")
+    if one == "bearing" and log.action is not None and not log.attempted:
+        raise LogError("observations.csv, column 'reading': every cell is empty (a bearing-only log); an action-table "
+                       "log with bearings only needs actions.csv (each action's attempted velocity) for its start")
 
     # too short for the model asked
     if log.steps < MIN_STEPS:

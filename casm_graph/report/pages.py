@@ -134,9 +134,14 @@ def residual_figure(log: Log, fit: Fit):
         ax.axhline(0, color="k", lw=0.5)
         ax.set(xlabel="time (s)", ylabel=name, title=f"motion residual: {name.split()[0]}")
     ax = axs[1, 0]
-    ax.plot(d, r, ".", ms=1, alpha=0.3)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.reading_sigma:.3g})")
+    if m.has("reading"):
+        ax.plot(d, r, ".", ms=1, alpha=0.3)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.reading_sigma:.3g})")
+    else:
+        ax.text(0.5, 0.5, "no readings in this log (a bearing-only sensor)", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_axis_off()
     ax = axs[1, 1]
     bb = b[~np.isnan(b)]
     if len(bb) and m.has("bearing"):
@@ -159,7 +164,9 @@ def cost_figure(fit: Fit):
     stages = np.asarray(fit.stages)
     for j, st in enumerate(dict.fromkeys(stages)):
         idx = np.flatnonzero(stages == st)
-        ax.semilogy(idx + 1, cost[idx], "o-", ms=3, color=f"C{j}", label=f"{st} graph")
+        ax.plot(idx + 1, cost[idx], "o-", ms=3, color=f"C{j}", label=f"{st} graph")
+    if len(cost) and np.all(cost > 0):          # the EM methods' cost, -log p(O | model), may be negative
+        ax.set_yscale("log")
     ax.set(xlabel="iteration", ylabel="cost (half chi-square)", title="Cost per iteration")
     ax.legend()
     return fig
@@ -204,7 +211,7 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
     if truth is not None:
         sm = truth.get("sensor_model", {})
         facts += [("true reading sigma", sm.get("reading_sigma")), ("true bearing sigma", sm.get("bearing_sigma"))]
-        if "camera" in sm:
+        if "camera" in sm and m.has("reading"):
             d = np.linspace(*m.distance_range, 200)
             facts.append(("sensor curve RMS vs truth", f"{np.sqrt(np.mean((m.reading(d) - true_reading(truth, d)) ** 2)):.3f}"))
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
