@@ -1,4 +1,4 @@
-"""Action-table robots with ranges only, on the independent world: model and trajectory from the log alone.
+"""Action-table robots with one sensor channel, on the independent world: model and trajectory from the log alone.
 
 The world's table robot carrying a ranging radio (affine time-of-flight curve, 5 cm noise, landmarks all
 around, no bearings). One rotation is free without bearings (every heading and every body velocity turned
@@ -6,7 +6,10 @@ together), so headings and body velocities are compared after the one rotation t
 headings with the truth; its size is printed too (the start fixes it along actions.csv's attempted
 directions). Compared against the world's realised per-action velocities.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/range_only_table.py --seeds 0 1 2 3 4 --minutes 8
+With ``--sensor bearing`` the world's camera robot with its blob sizes dropped (bearings only; no curve, no
+free rotation: the bearings fix the headings).
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/range_only_table.py --seeds 0 1 2 3 4 --minutes 8 [--sensor bearing]
 """
 import argparse
 import json
@@ -43,12 +46,14 @@ def one(seed: int, minutes: float, sensor: str = "range") -> dict:
     dist = np.linspace(*cal.model.distance_range, 50)
     curve = truth["sensor_curve"]
     true_r = curve["s"] * dist + curve["o"] if curve["kind"] == "affine" else np.full_like(dist, np.nan)
+    sigma = cal.model.reading_sigma if sensor == "range" else cal.model.bearing_sigma
     return {"seed": seed, "position_rms": float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2
                                                                 + (tr["y"] - log.truth[:, 2]) ** 2))),
             "heading_rms": float(np.sqrt(np.mean(wrap(dh - turn) ** 2))), "rotation": turn,
             "velocity_rms": np.sqrt(np.mean((aligned - tv) ** 2, axis=0)).tolist(),
-            "curve_rms": float(np.sqrt(np.mean((cal.model.reading(dist) - true_r) ** 2))),
-            "reading_sigma": float(cal.model.reading_sigma), "true_sigma": truth["noise"]["reading_sigma"],
+            "curve_rms": (float(np.sqrt(np.mean((cal.model.reading(dist) - true_r) ** 2))) if sensor == "range"
+                          else float("nan")),
+            "sigma": float(sigma), "true_sigma": truth["noise"][f"{'reading' if sensor == 'range' else 'bearing'}_sigma"],
             "seconds": seconds}
 
 
@@ -56,17 +61,18 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--minutes", type=float, default=8.0)
+    ap.add_argument("--sensor", choices=["range", "bearing"], default="range")
     ap.add_argument("--json")
     a = ap.parse_args(argv)
     rows = []
-    print("seed | position RMS m | heading RMS rad | rotation rad | vx, vy mm/s, w rad/s RMS | curve m | sigma (true) | s")
+    print("seed | position RMS m | heading RMS rad | rotation rad | vx, vy mm/s, w rad/s RMS | curve m | sensor sigma (true) | s")
     for seed in a.seeds:
-        r = one(seed, a.minutes)
+        r = one(seed, a.minutes, a.sensor)
         rows.append(r)
         v = r["velocity_rms"]
         print(f"{seed} | {r['position_rms']:.3f} | {r['heading_rms']:.3f} | {r['rotation']:+.3f} | "
               f"{1000 * v[0]:.1f}, {1000 * v[1]:.1f}, {v[2]:.3f} | {r['curve_rms']:.3f} | "
-              f"{r['reading_sigma']:.3f} ({r['true_sigma']}) | {r['seconds']:.0f}", flush=True)
+              f"{r['sigma']:.3f} ({r['true_sigma']}) | {r['seconds']:.0f}", flush=True)
     med = {k: float(np.median([r[k] for r in rows])) for k in ("position_rms", "heading_rms", "curve_rms")}
     vmed = np.median([r["velocity_rms"] for r in rows], axis=0)
     print(f"median | {med['position_rms']:.3f} | {med['heading_rms']:.3f} | | {1000 * vmed[0]:.1f}, "
