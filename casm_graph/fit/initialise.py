@@ -295,7 +295,7 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
     obs_knot = np.clip(np.round(log.obs_step / stride).astype(int), 0, len(knots) - 1)
     lm_idx = log.landmark_index
     lm = log.landmark_xy[lm_idx]
-    if np.all(np.isnan(log.obs_reading)):
+    if "reading" not in log.channels:
         mean = _bearing_start(log, model, knots)
         poly, res, (p, k), ev = np.asarray(model.reading_poly, float), None, (np.nan, np.nan), np.nan
     else:

@@ -269,7 +269,7 @@ class Problem:
 def heading_anchor(log: Log, poses: np.ndarray) -> float | None:
     """The first heading a graph of ``log`` holds (``poses`` its start): on a log without bearings only, where
     turning every heading and body velocity together changes nothing the log measures."""
-    return None if np.any(~np.isnan(log.obs_bearing)) else float(poses[0, 2])
+    return None if "bearing" in log.channels else float(poses[0, 2])
 
 
 def state(poses: np.ndarray, model: Model) -> State:

@@ -153,7 +153,8 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
     realiased: list[int] = []
     progress.stage("initialise", None)
     init = initialise(log, start)
-    if not np.any(~np.isnan(log.obs_bearing)) and not init.heading_agreement >= HEADING_AGREEMENT:
+    bearings = "bearing" in log.channels
+    if not bearings and not init.heading_agreement >= HEADING_AGREEMENT:
         why = (f"consecutive moves agree to {init.heading_agreement:.2f}, under {HEADING_AGREEMENT}"
                if np.isfinite(init.heading_agreement) else "too few repeated moves to check them")
         warnings.warn(HEADING_WARNING.format(why), RuntimeWarning, stacklevel=2)
@@ -161,7 +162,6 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
                              bearing_sigma=float(start.bearing_sigma))
     lay = G.layout(log, model, stride=o.coarse_stride)
     poses = init.poses[lay.knots]
-    bearings = bool(np.any(~np.isnan(log.obs_bearing)))
     fraction, weight = (FalseDetections.start[0] if mixture else 0.0), None
     progress.stage("coarse graph", o.coarse_rounds)
     for r in range(o.coarse_rounds):
@@ -245,7 +245,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                              "log_likelihood": ll, "converged": bool(converged),
                              "outliers_pruned": int(pruned.sum()),
                              "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1},
-                             **({} if np.any(~np.isnan(log.obs_bearing)) else {"heading_agreement": (
+                             **({} if "bearing" in log.channels else {"heading_agreement": (
                                  round(init.heading_agreement, 4) if np.isfinite(init.heading_agreement) else None)})},
                         effects={FalseDetections.name: {"fraction": fraction}} if mixture else {})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=cost, stages=stages,
