@@ -69,8 +69,6 @@ FOLD_TOL = 1e-5              # relative cost change that ends a fold fit (about 
 # --------------------------------------------------------------------------- statistics
 def _inflation(r_time_ordered: np.ndarray) -> float:
     """Variance inflation (1 + rho) / (1 - rho) of means of an AR(1) series with lag-one correlation rho >= 0."""
-    if len(r_time_ordered) < 2:
-        return 1.0
     r = r_time_ordered - r_time_ordered.mean()
     rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
     rho = min(max(rho, 0.0), 0.95)
@@ -147,8 +145,6 @@ def covariate_tests(ch: Channel) -> list[dict]:
 def channel_report(chs: dict[str, Channel]) -> dict:
     rep = {}
     for name, ch in chs.items():
-        if not len(ch.residual):              # a channel the log does not measure (ranges only)
-            continue
         order = np.argsort(ch.time, kind="stable")
         rep[name] = {"rms": float(np.sqrt(np.mean(ch.residual ** 2))) if len(ch.residual) else float("nan"),
                      "rms_raw": float(np.sqrt(np.mean(ch.raw ** 2))) if len(ch.raw) else float("nan"),

@@ -98,36 +98,34 @@ def _range_arcs(lm: np.ndarray, dist: np.ndarray, weight: np.ndarray, tt: np.nda
     gc, zc = g - g.mean(axis=1, keepdims=True), z - z.mean()
     u = np.sum(np.conj(gc) * zc[None, :], axis=1) / np.maximum(np.sum(np.abs(gc) ** 2, axis=1), 1e-12)
     z0 = z.mean() - u * g.mean(axis=1)
-    p = np.column_stack([z0.real, z0.imag, u.real, u.imag])
-    g_obs = _arc_basis(tt, ws)
-    gr, gi = g_obs.real, g_obs.imag
     sw = np.sqrt(weight)[None, :]
+    p, rss = _arc_gauss_newton(np.column_stack([z0.real, z0.imag, u.real, u.imag]), _arc_basis(tt, ws), lm, dist,
+                               sw, iterations)
+    still = int(np.argmin(np.abs(ws)))            # standing still: the same fit with no displacement at all
+    _, rss0 = _arc_gauss_newton(np.array([[p[still, 0], p[still, 1], 0.0, 0.0]]), np.zeros((1, len(tt)), complex),
+                                lm, dist, sw, iterations)
+    return p[:, 0] + 1j * p[:, 1], p[:, 2] + 1j * p[:, 3], rss, float(rss0[0])
+
+
+def _arc_gauss_newton(p: np.ndarray, g: np.ndarray, lm: np.ndarray, dist: np.ndarray, sw: np.ndarray,
+                      iterations: int):
+    """Huber-weighted Gauss-Newton of arcs (z0 real, imag, u real, imag), one per row of the basis ``g``, on
+    ranges ``dist`` to ``lm`` whitened by ``sw``: the parameters and each arc's weighted residual sum of squares."""
+    gr, gi = g.real, g.imag
     for it in range(iterations + 1):
         px = p[:, :1] + p[:, 2:3] * gr - p[:, 3:4] * gi
         py = p[:, 1:2] + p[:, 2:3] * gi + p[:, 3:4] * gr
         dx, dy = px - lm[None, :, 0], py - lm[None, :, 1]
         d = np.maximum(np.hypot(dx, dy), 1e-9)
         r = (d - dist[None, :]) * sw
-        h = robust.huber(r)
         if it == iterations:
             break
+        h = robust.huber(r)
         ex, ey = dx / d * sw * h, dy / d * sw * h
         J = np.stack([ex, ey, ex * gr + ey * gi, -ex * gi + ey * gr], axis=-1)
         H = np.einsum("wni,wnj->wij", J, J) + 1e-9 * np.eye(4)
         p = p - np.linalg.solve(H, np.einsum("wni,wn->wi", J, r * h)[..., None])[..., 0]
-    rss = np.sum(robust.huber_loss(r), axis=1) * 2
-    still = int(np.argmin(np.abs(ws)))
-    c = np.array([p[still, 0], p[still, 1]])
-    for _ in range(iterations):
-        dx, dy = c[0] - lm[:, 0], c[1] - lm[:, 1]
-        d = np.maximum(np.hypot(dx, dy), 1e-9)
-        r0 = (d - dist) * sw[0]
-        h0 = robust.huber(r0)
-        J0 = np.column_stack([dx / d, dy / d]) * (sw[0] * h0)[:, None]
-        c = c - np.linalg.solve(J0.T @ J0 + 1e-9 * np.eye(2), J0.T @ (r0 * h0))
-    d = np.hypot(c[0] - lm[:, 0], c[1] - lm[:, 1])
-    rss0 = float(np.sum(robust.huber_loss((d - dist) * sw[0])) * 2)
-    return p[:, 0] + 1j * p[:, 1], p[:, 2] + 1j * p[:, 3], rss, rss0
+    return p, np.sum(robust.huber_loss(r), axis=1) * 2
 
 
 def _motion_headings(seg_act, seg_t, t_ref, seg_u, seg_rss, rss0, model: Model, attempted=None):
@@ -185,12 +183,17 @@ def _motion_headings(seg_act, seg_t, t_ref, seg_u, seg_rss, rss0, model: Model, 
     M = np.zeros((A, A), complex)
     np.add.at(M, (a1[plain], a0[plain]), np.exp(1j * (np.diff(d) - dur_in @ ws[wi])[plain]))
     phi = np.angle(np.linalg.eigh(M + M.conj().T)[1][:, -1])
+
+    def turn_rate(a: int, links: np.ndarray) -> int:
+        """The turn rate of action ``a`` on which ``links`` agree best, the rest held."""
+        miss = (np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ ws[wi])[links]
+        return int(np.argmax(np.sum(np.cos(miss[None, :] - (ws - ws[wi[a]])[:, None] * dur_in[None, links, a]),
+                                    axis=1)))
+
     for k, a in enumerate(turning):
         alone = through[:, k] & (through.sum(axis=1) == 1)
         if alone.sum() >= 2:
-            miss = (np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ ws[wi])[alone]
-            score = np.sum(np.cos(miss[None, :] - (ws - ws[wi[a]])[:, None] * dur_in[None, alone, a]), axis=1)
-            wi[a] = int(np.argmax(score))
+            wi[a] = turn_rate(a, alone)
     for sweep in range(8):
         delta = np.diff(d) - dur_in @ ws[wi]                       # phi_a1 - phi_a0 wanted
         for _ in range(5):
@@ -199,9 +202,7 @@ def _motion_headings(seg_act, seg_t, t_ref, seg_u, seg_rss, rss0, model: Model, 
             np.add.at(z, a0, np.exp(1j * (phi[a1] - delta)))
             phi = np.where(np.abs(z) > 0, np.angle(z), phi)
         for a in turning:
-            miss = np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ ws[wi]
-            score = np.sum(np.cos(miss[None, :] - (ws - ws[wi[a]])[:, None] * dur_in[None, :, a]), axis=1)
-            wi[a] = int(np.argmax(score))
+            wi[a] = turn_rate(a, np.ones(L, bool))
     w = ws[wi]
     d = ang[rows, wi[seg_act[movers]]]
     agreement = float(np.abs(np.mean(np.exp(1j * (np.diff(d) - (phi[a1] - phi[a0]) - dur_in @ w)))))

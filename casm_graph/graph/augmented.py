@@ -288,12 +288,10 @@ class EffectProblem:
 
     def _sightings(self, r: ARows):
         """Knot, pose and parameter Jacobians and residuals of the sighting rows, the heading anchor last."""
-        n_h = len(r.anchor_e)
-        hJ = np.zeros((n_h, 3))
-        hJ[:, 2] = 1.0 / G.ANCHOR_SIGMA
-        return (np.concatenate([self.r_knot, self.b_knot, np.zeros(n_h, int)]),
+        hk, hJ = G.anchor_rows(r.anchor_e)
+        return (np.concatenate([self.r_knot, self.b_knot, hk]),
                 np.concatenate([r.reading_J[0], r.bearing_J, hJ]),
-                np.concatenate([r.reading_J[1], r.bearing_Jt, np.zeros((n_h, self.n_theta))]),
+                np.concatenate([r.reading_J[1], r.bearing_Jt, np.zeros((len(hk), self.n_theta))]),
                 np.concatenate([r.reading_e, r.bearing_e, r.anchor_e]))
 
     def cost(self, st: AState) -> float:
@@ -386,7 +384,8 @@ class EffectProblem:
         block(ro + n_r + np.arange(n_b), r.bearing_Jt[:, None, :], np.full(n_b, 3 * K))
         po, n_h = ro + n_r + n_b, len(r.anchor_e)
         blocks.append((po + np.arange(n_t), 3 * K + np.arange(n_t), r.prior_J))
-        blocks.append((po + n_t + np.arange(n_h), np.full(n_h, 2), np.full(n_h, 1.0 / G.ANCHOR_SIGMA)))
+        hk, hJ = G.anchor_rows(r.anchor_e)
+        block(po + n_t + np.arange(n_h), hJ[:, None, :], 3 * hk)
         rows, cols, vals = (np.concatenate(x) for x in zip(*blocks))
         A = sp.csr_matrix((vals, (rows, cols)), shape=(po + n_t + n_h, 3 * K + n_t))
         e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e, r.anchor_e])

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import solve_triangular
 
-from casm_graph.graph.table import ANCHOR_SIGMA, Problem, State
+from casm_graph.graph.table import Problem, State, anchor_rows
 
 PIVOT_TOL = 1e-12                   # a pivot below this share of its variable's own information counts as singular
 CHUNK_DOUBLES = 4_000_000           # right-hand sides of the chain solves go through in blocks of about this size
@@ -33,8 +33,8 @@ def information_blocks(problem: Problem, st: State) -> tuple[np.ndarray, np.ndar
     B = np.einsum("nki,nkj->nij", Ha, Hb)
     np.add.at(D, problem.r_knot, np.einsum("ni,nj->nij", r.reading_J[0], r.reading_J[0]))
     np.add.at(D, problem.b_knot, np.einsum("ni,nj->nij", r.bearing_J, r.bearing_J))
-    if len(getattr(r, "anchor_e", ())):
-        D[0, 2, 2] += 1.0 / ANCHOR_SIGMA ** 2
+    hk, hJ = anchor_rows(r.anchor_e)
+    np.add.at(D, hk, np.einsum("ni,nj->nij", hJ, hJ))
     return D, B
 
 
@@ -43,10 +43,8 @@ def pose_equations(problem: Problem, st: State) -> tuple:
     :func:`solve_arrow`: the chain eliminated directly, where GTSAM's solve goes through a Python factor per step."""
     r = problem.rows(st)
     Ha, Hb, _ = r.action_J
-    n_h = len(r.anchor_e)
-    hJ = np.zeros((n_h, 3))
-    hJ[:, 2] = 1.0 / ANCHOR_SIGMA
-    knot = np.concatenate([problem.r_knot, problem.b_knot, np.zeros(n_h, int)])
+    hk, hJ = anchor_rows(r.anchor_e)
+    knot = np.concatenate([problem.r_knot, problem.b_knot, hk])
     Jp = np.concatenate([r.reading_J[0], r.bearing_J, hJ])
     eo = np.concatenate([r.reading_e, r.bearing_e, r.anchor_e])
     return normal_equations(Ha, Hb, np.zeros((len(Ha), 3, 0)), r.action_e, knot, Jp, np.zeros((len(knot), 0)), eo,

@@ -180,14 +180,13 @@ class Problem:
             else:
                 g.add(X(i), Ha[i], X(i + 1), Hb[i], V(int(lay.seg_action[i])), Hv[i], -r.action_e[i], unit3)
         D = self.n_poly
-        knot = np.concatenate([self.r_knot, self.b_knot])
-        Jp = np.concatenate([r.reading_J[0], r.bearing_J])
-        Jc = np.concatenate([r.reading_J[1], np.zeros((len(self.b_knot), D))])
-        e = np.concatenate([r.reading_e, r.bearing_e])
+        hk, hJ = anchor_rows(r.anchor_e)
+        knot = np.concatenate([self.r_knot, self.b_knot, hk])
+        Jp = np.concatenate([r.reading_J[0], r.bearing_J, hJ])
+        Jc = np.concatenate([r.reading_J[1], np.zeros((len(self.b_knot) + len(hk), D))])
+        e = np.concatenate([r.reading_e, r.bearing_e, r.anchor_e])
         order = np.argsort(knot, kind="stable")
         add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only)
-        if len(r.anchor_e):
-            g.add(X(0), np.array([[0.0, 0.0, 1.0 / ANCHOR_SIGMA]]), -r.anchor_e, gtsam.noiseModel.Unit.Create(1))
         if poses_only:
             return g
         eye3 = np.eye(3) / VELOCITY_PRIOR_SIGMA
@@ -254,9 +253,11 @@ class Problem:
         block(n_act + n_r + np.arange(n_b), r.bearing_J[:, None, :], 3 * self.b_knot)
         n_p, n_h = 3 * A + D, len(r.anchor_e)
         prior = np.concatenate([np.full(3 * A, 1 / VELOCITY_PRIOR_SIGMA), np.full(D, 1 / POLY_PRIOR_SIGMA)])
-        rows.append(n_act + n_r + n_b + np.arange(n_p + n_h))
-        cols.append(np.concatenate([3 * K + np.arange(n_p), np.full(n_h, 2)]))
-        vals.append(np.concatenate([prior, np.full(n_h, 1 / ANCHOR_SIGMA)]))
+        rows.append(n_act + n_r + n_b + np.arange(n_p))
+        cols.append(3 * K + np.arange(n_p))
+        vals.append(prior)
+        hk, hJ = anchor_rows(r.anchor_e)
+        block(n_act + n_r + n_b + n_p + np.arange(n_h), hJ[:, None, :], 3 * hk)
         shape = (n_act + n_r + n_b + n_p + n_h, 3 * K + n_p)
         A_ = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=shape)
         e = np.concatenate([r.action_e.ravel(), r.reading_e, r.bearing_e, r.prior_e, r.anchor_e])
@@ -264,6 +265,13 @@ class Problem:
                   "turn": np.arange(2, n_act, 3), "reading": n_act + np.arange(n_r),
                   "bearing": n_act + n_r + np.arange(n_b)}
         return A_, e, groups
+
+
+def anchor_rows(anchor_e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The heading anchor's whitened rows as sightings of pose 0: their knots (0) and pose Jacobians (on theta)."""
+    J = np.zeros((len(anchor_e), 3))
+    J[:, 2] = 1.0 / ANCHOR_SIGMA
+    return np.zeros(len(anchor_e), int), J
 
 
 def heading_anchor(log: Log, poses: np.ndarray) -> float | None:

@@ -39,7 +39,8 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
     has_b = ~np.isnan(np.asarray(log.obs_bearing, float))
     n_obs, n_r, n_b = len(log.obs_t), int(has_r.sum()), int(has_b.sum())
 
-    # a channel missing altogether: range-only or bearing-only sensors (continuous commands only, so far)
+    # a channel missing altogether: range-only or bearing-only sensors (an action table with bearings only
+    # needs actions.csv for its start)
     if n_r == 0 and n_b == 0:
         raise LogError("observations.csv: no sighting has a reading or a bearing")
     one = "reading" if n_b == 0 else "bearing" if n_r == 0 else None

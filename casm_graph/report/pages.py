@@ -36,14 +36,19 @@ def png(fig) -> str:
     return f'<img src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
 
 
+def absent(ax, text: str) -> None:
+    """Say on ``ax`` that the log does not measure what the panel would show."""
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
+    ax.set_axis_off()
+
+
 def sensor_figure(log: Log, fit: Fit, truth: dict | None):
     m = fit.model
     d_obs = residuals.distances(fit.poses[log.obs_step], log)
     fig, ax = subplots(figsize=(7, 4))
     if not m.has("reading"):
-        ax.text(0.5, 0.5, "no readings in this log (a bearing-only sensor):\nno sensor curve to learn",
-                ha="center", va="center", transform=ax.transAxes)
-        ax.set(title="Sensor model", xticks=[], yticks=[])
+        absent(ax, "no readings in this log (a bearing-only sensor):\nno sensor curve to learn")
+        ax.set(title="Sensor model")
         return fig
     ok = ~np.isnan(log.obs_reading)
     ax.plot(d_obs[ok], log.obs_reading[ok], ".", ms=1, alpha=0.3, color="0.5", label="readings at fitted poses")
@@ -139,9 +144,7 @@ def residual_figure(log: Log, fit: Fit):
         ax.axhline(0, color="k", lw=0.5)
         ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.reading_sigma:.3g})")
     else:
-        ax.text(0.5, 0.5, "no readings in this log (a bearing-only sensor)", ha="center", va="center",
-                transform=ax.transAxes)
-        ax.set_axis_off()
+        absent(ax, "no readings in this log (a bearing-only sensor)")
     ax = axs[1, 1]
     bb = b[~np.isnan(b)]
     if len(bb) and m.has("bearing"):
@@ -151,9 +154,7 @@ def residual_figure(log: Log, fit: Fit):
         ax.plot(x, np.exp(-0.5 * (x / s) ** 2) / (s * np.sqrt(2 * np.pi)), "C3")
         ax.set(xlabel="bearing residual (rad)", title=f"bearing residual (sigma {s:.3g})")
     else:
-        ax.text(0.5, 0.5, "no bearings in this log (a range-only sensor)", ha="center", va="center",
-                transform=ax.transAxes)
-        ax.set_axis_off()
+        absent(ax, "no bearings in this log (a range-only sensor)")
     fig.tight_layout()
     return fig
 
@@ -324,8 +325,6 @@ def time_panel(diag):
     """Residuals over time: a moving mean per channel."""
     fig, ax = subplots(figsize=(13, 3.2))
     for ch, d in diag.residuals.items():
-        if len(d.residual) == 0:                  # a channel this log does not measure
-            continue
         order = np.argsort(d.time)
         t, r = d.time[order], d.residual[order]
         w = max(len(r) // 60, 1)
