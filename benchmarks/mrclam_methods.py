@@ -6,6 +6,9 @@ share of the range of graph's velocities over those commands (forward and turn),
 Vicon, and the wall time (methods run one after another on one core).
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/mrclam_methods.py [--robots 1 2 3 4 5] [--minutes M]
+    OPENBLAS_NUM_THREADS=1 python benchmarks/mrclam_methods.py --floor-seed 2 --minutes 4    # a simulated floor
+
+With ``--floor-seed`` the log is the simulator's continuous-command floor instead (no Vicon column).
 """
 from __future__ import annotations
 
@@ -26,10 +29,13 @@ from casm_graph.io import mrclam  # noqa: E402
 METHODS = ("graph", "graph-em", "ekfs-em-learned", "ekfs-em")
 
 
-def one(data: Path, robot: int, minutes: float | None) -> dict:
-    log, _ = mrclam.load_robot(data, robot)
-    if minutes:
-        log = log.window(log.t[0], log.t[0] + 60 * minutes)
+def one(data: Path, robot: int, minutes: float | None, floor_seed: int | None = None) -> dict:
+    if floor_seed is not None:
+        log, _ = cg.simulate("floor", minutes=minutes or 4, seed=floor_seed)
+    else:
+        log, _ = mrclam.load_robot(data, robot)
+        if minutes:
+            log = log.window(log.t[0], log.t[0] + 60 * minutes)
     out = {}
     for m in METHODS:
         t = time.perf_counter()
@@ -38,9 +44,10 @@ def one(data: Path, robot: int, minutes: float | None) -> dict:
         tr = cal.trajectory
         pos = float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
         seconds = time.perf_counter() - t
-        if m == METHODS[0]:
+        if floor_seed is None and m == METHODS[0]:
             ref = groundtruth.truth_fit(log, cal.model.command)      # the same map form, the poses held at Vicon
-        vicon = groundtruth.map_errors(cal.model.command, ref, log.controls, log.dt)
+        vicon = (groundtruth.map_errors(cal.model.command, ref, log.controls, log.dt) if floor_seed is None
+                 else {"v": {"fraction": float("nan")}, "w": {"fraction": float("nan")}})
         out[m] = {"v": v, "position_rms": pos, "seconds": seconds,
                   "speed_vs_vicon": vicon["v"]["fraction"], "turn_vs_vicon": vicon["w"]["fraction"],
                   "v_coef": cal.model.command.v_coef.tolist(), "w_coef": cal.model.command.w_coef.tolist()}
@@ -59,13 +66,14 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=str(mrclam.find_data()))
     ap.add_argument("--robots", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     ap.add_argument("--minutes", type=float)
+    ap.add_argument("--floor-seed", type=int, help="a simulated floor of this seed instead of the robots")
     ap.add_argument("--json")
     a = ap.parse_args(argv)
     rows = {}
-    print("| robot | method | speed / turn map vs graph, % of range | speed / turn map vs Vicon's, % | position RMS m | s |")
+    print("| log | method | speed / turn map vs graph, % of range | speed / turn map vs Vicon's, % | position RMS m | s |")
     print("|---|---|---:|---:|---:|---:|")
-    for r in a.robots:
-        rows[r] = one(Path(a.data), r, a.minutes)
+    for r in (["floor"] if a.floor_seed is not None else a.robots):
+        rows[r] = one(Path(a.data), r, a.minutes, a.floor_seed)
         for m, e in rows[r].items():
             print(f"| {r} | {m} | {100 * e['speed_vs_graph']:.1f} / {100 * e['turn_vs_graph']:.1f} | "
                   f"{100 * e['speed_vs_vicon']:.1f} / {100 * e['turn_vs_vicon']:.1f} | "
