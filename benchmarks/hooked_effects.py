@@ -44,7 +44,8 @@ def one(effect: str, seed: int, minutes: float) -> dict:
         diag = cg.diagnose(log, cal)
         td = time.perf_counter() - t
         row = {"effect": effect, "seed": seed, "strength": truth.get("strength"), "geometry": truth.get("geometry"),
-               "verdict": diag.verdict, "best": diag.candidates[0].effect if diag.candidates else None,
+               "verdict": diag.verdict, "lookalikes": [g["effects"] for g in diag.lookalikes],
+               "best": diag.candidates[0].effect if diag.candidates else None,
                "best_delta_bic": diag.candidates[0].delta_bic if diag.candidates else None,
                "position_rms": [position_rms(log, cal)], "diagnose_over_calibrate": td / tc}
         add = (diag.proposal_effect() if diag.proposal else
@@ -55,7 +56,7 @@ def one(effect: str, seed: int, minutes: float) -> dict:
             after = cg.diagnose(log, cal2, before=diag)
             row.update(added=name, fitted=cal2.model.effects.get(name),
                        fitted_std=cal2.model.fit.get("effects_std", {}).get(name),
-                       verdict_after=after.verdict)
+                       verdict_after=after.verdict, lookalikes_after=[g["effects"] for g in after.lookalikes])
             row["position_rms"].append(position_rms(log, cal2))
         return row
 

@@ -27,18 +27,51 @@ def test_first_order_lag_recursion_and_steady_state():
     x = rng.normal(size=(200, 3))
     dt = rng.uniform(0.005, 0.02, 200)
     y = lagged(x, dt, 0.1)
-    ref = x.copy()
-    for k in range(1, 200):
+    ref, end = x.copy(), x[0].copy()
+    for k in range(1, 200):                  # each row: the mean over its step of the lag's exact response
         a = np.exp(-dt[k] / 0.1)
-        ref[k] = a * ref[k - 1] + (1 - a) * x[k]
+        ref[k] = x[k] + (end - x[k]) * 0.1 / dt[k] * (1 - a)
+        end = a * end + (1 - a) * x[k]
     assert np.allclose(y, ref)
     step = lagged(np.r_[np.zeros(10), np.ones(2000)][:, None], np.full(2010, 0.01), 0.1)
-    assert step[19, 0] == pytest.approx(1 - np.exp(-1))           # one time constant after the jump: 63 %
+    assert step[19, 0] == pytest.approx(1 - 10 * (np.exp(-0.9) - np.exp(-1.0)))   # mean over 0.09-0.1 s after the jump
     assert step[-1, 0] == pytest.approx(1.0)
     cm = CommandModel(scale=(0.1, 0.5), v_coef=np.array([0.0, 0.1]), w_coef=np.array([0.0, 0.5]), lag=0.2)
     ctl = rng.uniform(-0.1, 0.1, size=(50, 2))
     assert np.allclose(cm.velocities(ctl), replace(cm, lag=0.0).velocities(ctl))   # no dt: the steady-state map
     assert not np.allclose(cm.velocities(ctl, np.full(50, 0.01)), cm.velocities(ctl))
+
+
+def test_two_stage_lag_is_two_cascaded_stages_with_the_same_mean_delay():
+    """Order 2: the first-order recursion applied twice with half the time constant, so ``lag`` stays the mean
+    delay (the area above a unit step's response) whatever the order."""
+    rng = np.random.default_rng(1)
+    x, dt = rng.normal(size=(300, 2)), rng.uniform(0.005, 0.02, 300)
+    assert np.allclose(lagged(x, dt, 0.2, order=2), lagged(lagged(x, dt, 0.1), dt, 0.1))
+    unit = np.r_[np.zeros(10), np.ones(4000)][:, None]
+    for order in (1, 2):
+        step = lagged(unit, np.full(4010, 0.001), 0.3, order=order)
+        assert np.sum(1 - step[10:, 0]) * 0.001 == pytest.approx(0.3, rel=0.01)
+    s1, s2 = (lagged(unit, np.full(4010, 0.001), 0.3, order=o)[:, 0] for o in (1, 2))
+    assert s2[10 + 30] < s1[10 + 30] and np.all(np.diff(s2[10:]) >= 0)     # slower start, no overshoot
+
+
+def test_lag_order_survives_model_json_and_a_bad_one_is_refused(tmp_path):
+    cm = CommandModel(scale=(0.1, 0.5), v_coef=np.array([0.0, 0.1]), w_coef=np.array([0.0, 0.5]), lag=0.25,
+                      lag_order=2)
+    m = Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=np.array([0.0, 1.0]),
+              reading_sigma=0.05, bearing_sigma=0.02, command=cm)
+    m = CT.with_effect(m, "actuator_lag", 0.25, order=2)
+    m.save(tmp_path / "model.json")
+    data = json.loads((tmp_path / "model.json").read_text())
+    assert data["action_model"]["lag_order"] == 2 and data["effects"]["actuator_lag"] == {"tau": 0.25, "order": 2}
+    back = Model.load(tmp_path / "model.json")
+    assert back.command.lag_order == 2 and back.command.lag == 0.25
+    assert CT.with_effect(back, "actuator_lag", 0.0).command.lag_order == 1          # off: no stages left
+    data["action_model"]["lag_order"] = 3
+    (tmp_path / "bad.json").write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="lag_order"):
+        Model.load(tmp_path / "bad.json")
 
 
 def test_lag_survives_model_json(tmp_path):
@@ -65,6 +98,7 @@ def test_profile_finds_the_lag_and_calibrate_writes_it(lag_floor, tmp_path):
     data = json.loads((tmp_path / "run" / "model.json").read_text())
     lag = data["action_model"]["lag"]
     assert lag == pytest.approx(TRUE_LAG, rel=0.25), lag
+    assert data["action_model"]["lag_order"] == 1            # a one-stage lag keeps the family's first member
     assert data["effects"]["actuator_lag"]["tau"] == pytest.approx(lag)
 
 

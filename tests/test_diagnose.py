@@ -235,4 +235,9 @@ def test_lookalikes_are_named_with_what_would_separate_them():
     assert D.lookalikes([cand("actuator_lag", -169, 98), cand("camera_latency", -150, 90)], "actuator_lag", sep) == []
     assert D.lookalikes([cand("actuator_lag", -12, 9), cand("camera_latency", -8, 9)], "actuator_lag", sep) == []
     assert D.lookalikes(cands, "none", sep) == []
+    far = [cand("actuator_lag", -10024, 0), cand("camera_latency", -9800, 0), cand("battery_fade", -181, 0)]
+    assert D.lookalikes(far, "actuator_lag", sep) == []          # 224 apart: strong evidence on the absolute scale
+    rel = D.lookalikes(far, "actuator_lag", sep, relative=0.1)    # within a tenth of the gain: not separated
+    assert [g["effects"] for g in rel] == [["actuator_lag", "camera_latency"]]
+    assert "10 % of the best" in " ".join(D.lookalike_words(rel))
     assert all(REGISTRY[n].distinguished_by for n in REGISTRY)      # every catalog effect says what separates it

@@ -7,9 +7,10 @@ motion residuals per knot-to-knot segment and its reading and bearing residuals 
 tested. ``time_since_action_change`` is the time since the command last moved by more than
 ``COMMAND_CHANGE`` of its range; with a fixed camera the image angle is the bearing (listed first,
 so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
-candidates, each scored by delta BIC from its profile log-likelihood
-(:func:`casm_graph.fit.continuous.profile`); time-blocked held-out folds are not run for continuous
-logs, so the verdict's second line of evidence is the residual structure the effect is built for.
+candidates, the profiled ones placed by their profile (:func:`casm_graph.fit.continuous.profile`), the others
+fitted through their hooks, and every one scored by delta BIC against one base, each settled the same way at
+its value; time-blocked held-out folds are not run for continuous logs, so the verdict's second line of
+evidence is the residual structure the effect is built for.
 """
 from __future__ import annotations
 
@@ -31,11 +32,16 @@ from casm_graph.models.effects import REGISTRY
 from casm_graph.models.model import Model
 
 COMMAND_CHANGE = 0.1
-WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a first-order lag "
-                        "of {:.3f} s.",
+WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
+                        "{:.3f} s ({} first-order stage{}).",
         "lens_distortion": "For a fixed camera the image angle is the bearing: the reading is the polynomial times "
                            "(1 + {:.4f} bearing^2)."}
 SETTLE_ITERATIONS = 8
+HOOKED_SETTLE_ROUNDS = 2     # noise step and LM rounds settling each candidate at its value (and the base they are
+                             # compared with): a latency's velocity window follows its delay from one round to the next
+LOOKALIKE_RELATIVE = 0.1     # each profile is a short re-optimisation whose settling error grows with the change it
+                             # makes (hundreds of nats of delta BIC on effect-free floors): candidates within a tenth
+                             # of the best's delta BIC are not separated by this log
 
 
 def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndarray:
@@ -44,6 +50,17 @@ def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndar
     jump = np.any(np.abs(np.diff(log.controls, axis=0)) > frac * np.where(span > 0, span, 1.0), axis=1)
     last = np.maximum.accumulate(np.where(np.concatenate([[True], jump]), np.arange(log.steps), 0))
     return log.t - log.t[last]
+
+
+def command_acceleration(seg_v: np.ndarray, seg_mid: np.ndarray) -> np.ndarray:
+    """(S, 3) rate of change of the model's velocity into each segment from the one before (0 for the first):
+    with smooth commands, where ``time_since_action_change`` says little, a delay (an actuator lag, or a camera
+    latency the smoothed poses take in) leaves motion residuals of about minus the delay times this. Backward,
+    so that a robot steering by feedback, whose later commands answer its present motion noise, shows none."""
+    out = np.zeros_like(seg_v)
+    if len(seg_mid) > 1:
+        out[1:] = np.diff(seg_v, axis=0) / np.maximum(np.diff(seg_mid), 1e-9)[:, None]
+    return out
 
 
 def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[str, Channel]:
@@ -55,8 +72,10 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     seg_v = (v[lay.seg_idx] * lay.seg_dt[:, :, None]).sum(axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
     t = log.pose_times[lay.knots[:-1]] - log.t[0]
     since = time_since_command_change(log)[lay.knots[:-1]]
+    accel = command_acceleration(seg_v, t + 0.5 * lay.seg_time)
     cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "heading": P[:-1, 2], "speed": seg_v[:, 0],
-           "turn_rate": seg_v[:, 2], "time_since_action_change": since}
+           "turn_rate": seg_v[:, 2], "time_since_action_change": since, "acceleration": accel[:, 0],
+           "turn_acceleration": accel[:, 2]}
     out = {}
     for k, name in enumerate(("forward", "lateral", "turn")):
         out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov, command=seg_v[:, k],
@@ -127,37 +146,42 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
     todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped]
     if progress is not None and todo + hooked:
         progress.stage("candidates", len(todo) + len(hooked), unit="effects")
+    coarse = CT.layout(log, CT.COARSE_KNOT_DT)
+    cuse = CT.gate(log, full[log.obs_step], model, effects=own)
+    start = full[coarse.knots]
+    n = (3 * (coarse.n_poses - 1) + int((cuse[0] & ~np.isnan(log.obs_reading)).sum())
+         + int((cuse[1] & ~np.isnan(log.obs_bearing)).sum()))
+    if todo or hooked:        # every candidate scored against one base, settled as they are
+        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=HOOKED_SETTLE_ROUNDS)
     for name in todo:
         prof = CT.profile(log, base, name, own)
+        ll, _ = CT.settled_log_likelihood(log, coarse, CT.with_effect(model, name, prof.value, prof.order), cuse,
+                                          start, own, rounds=HOOKED_SETTLE_ROUNDS)
+        gain = float(ll - ll0)
         eff = REGISTRY[name]
         (param,) = eff.params
-        cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=prof.delta_bic,
-                               heldout_nll_drop=float("nan"), explanation=f"{WHAT[name].format(prof.value)} {eff.physics}",
-                               delta_log_likelihood=prof.gain, parameters={param: prof.value},
+        what = WHAT[name].format(prof.value, prof.order, "s" if prof.order > 1 else "")
+        cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=-2 * gain + prof.order * np.log(n),
+                               heldout_nll_drop=float("nan"), explanation=f"{what} {eff.physics}",
+                               delta_log_likelihood=gain,
+                               parameters={param: prof.value, **({"order": prof.order} if prof.order > 1 else {})},
                                heldout_skipped="held-out folds are not run for continuous-command logs"))
         if progress is not None:
             progress.step(1)
-    if hooked:
-        coarse = CT.layout(log, CT.COARSE_KNOT_DT)
-        cuse = CT.gate(log, full[log.obs_step], model, effects=own)
-        start = full[coarse.knots]
-        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own)
-        n = (3 * (coarse.n_poses - 1) + int((cuse[0] & ~np.isnan(log.obs_reading)).sum())
-             + int((cuse[1] & ~np.isnan(log.obs_bearing)).sum()))
-        for e in hooked:
-            ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e])
-            gain = float(ll - ll0)
-            cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
-                                   heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
-                                   parameters=dict(m.effects.get(e.name, {})),
-                                   heldout_skipped="held-out folds are not run for continuous-command logs"))
-            if progress is not None:
-                progress.step(1)
+    for e in hooked:
+        ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=HOOKED_SETTLE_ROUNDS)
+        gain = float(ll - ll0)
+        cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
+                               heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
+                               parameters=dict(m.effects.get(e.name, {})),
+                               heldout_skipped="held-out folds are not run for continuous-command logs"))
+        if progress is not None:
+            progress.step(1)
     cands.sort(key=lambda c: c.delta_bic)
     names = [*(n for n in CT.EFFECTS if n not in skipped), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
     v, words = verdict(cands, struct, {n: kinds[n].explains for n in names})
-    alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names})
+    alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=LOOKALIKE_RELATIVE)
     words += lookalike_words(alike)
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "

@@ -309,20 +309,25 @@ def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list
 
 
 # --------------------------------------------------------------------------- verdict
-def lookalikes(cands: list[Candidate], verdict_effect: str, separated_by: dict | None = None) -> list[dict]:
+def lookalikes(cands: list[Candidate], verdict_effect: str, separated_by: dict | None = None,
+               relative: float = 0.0) -> list[dict]:
     """The candidates that explain the data about as well as the verdict's effect: supported by BIC and within
-    ``LOOKALIKE_BIC`` of it (less than strong evidence between them on Kass and Raftery's scale). One group
+    ``LOOKALIKE_BIC`` of it (less than strong evidence between them on Kass and Raftery's scale), or within
+    ``relative`` times its own delta BIC where the scores carry an error that grows with the gain. One group
     (the verdict first) with each member's delta BIC and held-out gain and what data would tell them apart
     (``separated_by``: effect name -> the effect class's ``distinguished_by``), or none."""
     best = next((c for c in cands if c.effect == verdict_effect), None)
     if best is None:
         return []
+    within = max(LOOKALIKE_BIC, relative * abs(best.delta_bic))
     group = [best] + [c for c in cands if c is not best and c.delta_bic <= BIC_SUPPORT
-                      and abs(c.delta_bic - best.delta_bic) < LOOKALIKE_BIC]
+                      and abs(c.delta_bic - best.delta_bic) < within]
     if len(group) < 2:
         return []
     sep = separated_by or {}
-    return [{"effects": [c.effect for c in group], "delta_bic": [c.delta_bic for c in group],
+    closer = (f"closer than {LOOKALIKE_BIC:g}" if within == LOOKALIKE_BIC else
+              f"closer than {100 * relative:g} % of the best, the error these scores carry")
+    return [{"effects": [c.effect for c in group], "delta_bic": [c.delta_bic for c in group], "closer_than": closer,
              "heldout_nll_drop": [c.heldout_nll_drop for c in group],
              "separated_by": {c.effect: sep.get(c.effect, "") for c in group}}]
 
@@ -334,7 +339,7 @@ def lookalike_words(groups: list[dict]) -> list[str]:
         first, others = g["effects"][0], g["effects"][1:]
         out.append(f"Look-alikes: {', '.join(others)} explain{'s' if len(others) == 1 else ''} the data about as "
                    f"well as {first} (delta BIC " + ", ".join(f"{b:.1f}" for b in g["delta_bic"]) +
-                   f": closer than {LOOKALIKE_BIC:g}); {first} is named on the evidence at hand, but this log does not "
+                   f": {g['closer_than']}); {first} is named on the evidence at hand, but this log does not "
                    "separate them firmly. What would: " + "; ".join(
                        f"for {e}, {w}" for e, w in g["separated_by"].items() if w) + ".")
     return out

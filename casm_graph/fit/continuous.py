@@ -169,8 +169,8 @@ class Problem:
                           "dt": np.where(lay.seg_dt > 0, lay.seg_dt, float(np.median(log.dt))).ravel()}
             self.Bv_prev, self.Bw_prev = bv[prev][idx], bw[prev][idx]
         if self.sensor_effects:
-            step = np.clip(log.obs_step - 1, 0, log.steps - 1)
-            self.Bv_obs, self.Bw_obs = bv[step], bw[step]
+            both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
+            self.Bv_obs, self.Bw_obs = both[:, :bv.shape[1]], both[:, bv.shape[1]:]
             pan = log.obs_pan if log.obs_pan is not None else np.zeros(len(log.obs_t))
             self.s_ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index,
                           "pan": np.nan_to_num(pan)}     # no pan logged: a fixed camera (image angle = bearing)
@@ -508,7 +508,7 @@ def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects
     if sensor:
         pan = np.nan_to_num(log.obs_pan) if log.obs_pan is not None else np.zeros(len(log.obs_t))
         ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": pan,
-               "velocity": step_velocities(log, model)[np.clip(log.obs_step - 1, 0, log.steps - 1)]}
+               "velocity": sighting_means(log, step_velocities(log, model), velocity_window(model, effects))}
         fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index])
         pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
                         np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
@@ -546,6 +546,30 @@ def with_state(model: Model, st: State, effects=()) -> Model:
     return model.with_(effects={**model.effects, **described})
 
 
+def velocity_window(model: Model, effects) -> float:
+    """Seconds before a sighting over which the sensor hooks' velocity is averaged: the value of the parameter an
+    effect names as its ``velocity_window`` (a latency's delay), 0 without one."""
+    return float(sum(abs(model.effects.get(e.name, {}).get(e.velocity_window, 0.0))
+                     for e in effects if getattr(e, "velocity_window", "")))
+
+
+def sighting_means(log: Log, rows: np.ndarray, window: float) -> np.ndarray:
+    """(N, c) mean of the per-step ``rows`` (T, c) over the ``window`` seconds before each sighting, and at least
+    over the step that ends at it: the displacement a delayed image missed, divided by the delay, when the
+    velocity changes within the delay."""
+    step = np.clip(log.obs_step - 1, 0, log.steps - 1)
+    out = np.asarray(rows, float)[step]
+    tp = log.pose_times
+    t1 = tp[log.obs_step]
+    t0 = np.maximum(t1 - window, tp[0])
+    wide = (t1 - t0 > log.dt[step]) & (log.obs_step > 0)
+    if wide.any():
+        cum = np.vstack([np.zeros(rows.shape[1]), np.cumsum(rows * log.dt[:, None], axis=0)])
+        for j in range(rows.shape[1]):
+            out[wide, j] = (np.interp(t1[wide], tp, cum[:, j]) - np.interp(t0[wide], tp, cum[:, j])) / (t1 - t0)[wide]
+    return out
+
+
 def step_velocities(log: Log, model: Model) -> np.ndarray:
     """(T, 3) body-frame velocity of every command step under the model."""
     return model.command.velocities(log.controls, log.dt)
@@ -571,7 +595,8 @@ def initialise(log: Log, model: Model, options: W.WindowOptions | None = None) -
     start's sensor curve.
     """
     cm = model.command
-    nominal = replace(for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0), lag=cm.lag)
+    nominal = replace(for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0), lag=cm.lag,
+                      lag_order=cm.lag_order)
     speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
     ws = W.window_start(log, nominal.velocities(log.controls, log.dt), len(model.reading_poly), max(speed, 0.05),
                         options)
@@ -795,6 +820,9 @@ PROFILE_GRID = {"actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),        # t
 PROFILE_BOUNDS = {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)}
 PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
 PROFILE_ITERATIONS = 8
+LAG_ORDERS = (1, 2)          # the actuator lag's family: one first-order stage, or two (a critically damped drive),
+                             # the second tried when the first is strongly supported and kept when BIC prefers it
+LAG_ORDER_SUPPORT = -10.0    # delta BIC of the one-stage lag below which the two-stage one is profiled too
 
 
 NEEDS = {"lens_distortion": ("reading", "bearing")}   # the sensor channels an effect's physics needs (a lens: a
@@ -845,15 +873,17 @@ def with_regional_noise(model: Model, log: Log, regions: RMN.Regions, fitted: Mo
     return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k)})
 
 
-def with_effect(model: Model, name: str, value: float) -> Model:
-    """``model`` with one profiled effect's parameter set (0 switches it off)."""
+def with_effect(model: Model, name: str, value: float, order: int | None = None) -> Model:
+    """``model`` with one profiled effect's parameter set (0 switches it off); ``order``: the lag's stages
+    (default: the model's)."""
     if name not in EFFECTS:
         raise ValueError(f"{name!r} is not profiled on continuous-command logs ({', '.join(EFFECTS)} are)")
     param = {"actuator_lag": "tau", "lens_distortion": "k"}[name]
-    effects = {**{k: v for k, v in model.effects.items() if k != name},
-               **({name: {param: float(value)}} if value else {})}
+    order = int(order or model.command.lag_order) if value else 1
+    entry = {param: float(value), **({"order": order} if order != 1 else {})}
+    effects = {**{k: v for k, v in model.effects.items() if k != name}, **({name: entry} if value else {})}
     if name == "actuator_lag":
-        return model.with_(command=replace(model.command, lag=float(value)), effects=effects)
+        return model.with_(command=replace(model.command, lag=float(value), lag_order=order), effects=effects)
     return model.with_(effects=effects)
 
 
@@ -870,10 +900,12 @@ class Profile:
     gain: float                    # log-likelihood at the maximum minus with the effect off (nats)
     n_data: int                    # residual rows, for BIC
     grid: list                     # (value, log-likelihood) pairs evaluated, in order
+    order: int = 1                 # the lag's stages (LAG_ORDERS); one more free parameter when above 1
+    gains: dict = field(default_factory=dict)   # order -> gain, for each order profiled
 
     @property
     def delta_bic(self) -> float:
-        return float(-2 * self.gain + np.log(self.n_data))
+        return float(-2 * self.gain + self.order * np.log(self.n_data))
 
 
 def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
@@ -884,17 +916,34 @@ def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
     map and polynomial re-settle (LM from ``fit``'s own), moves each noise level to its
     maximum-likelihood value and re-settles once more; its value is the log-likelihood with the
     noise levels concentrated out, so two settings compare as a likelihood ratio on the same data.
-    A grid brackets the maximum, Brent's bounded search refines it.
+    A grid brackets the maximum, Brent's bounded search refines it. An actuator lag strongly supported
+    with one stage is profiled with two as well, and the order BIC prefers (one more parameter) is kept.
     """
     lay = layout(log, COARSE_KNOT_DT)
     use = gate(log, fit.poses[log.obs_step], fit.model, effects=effects)
     start = fit.poses[lay.knots]
+    n = (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
+         + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
+    best = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=1)
+    if name == "actuator_lag" and best.delta_bic < LAG_ORDER_SUPPORT:
+        for order in LAG_ORDERS[1:]:
+            other = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=order)
+            gains = {**best.gains, **other.gains}
+            if other.delta_bic < best.delta_bic:
+                best = other
+            best.gains = gains
+    return best
+
+
+def _profile_order(log: Log, lay: Layout, use, start: np.ndarray, model: Model, name: str, effects, n: int,
+                   order: int) -> Profile:
+    """:func:`profile` for one lag order (1 for every other effect)."""
     seen: dict[float, float] = {}
 
     def value(x: float) -> float:
         x = round(float(x), 5)
         if x not in seen:
-            seen[x] = settled_log_likelihood(log, lay, with_effect(fit.model, name, x), use, start, effects)[0]
+            seen[x] = settled_log_likelihood(log, lay, with_effect(model, name, x, order), use, start, effects)[0]
         return seen[x]
 
     grid = list(PROFILE_GRID[name])
@@ -913,25 +962,34 @@ def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
         minimize_scalar(lambda x: -value(x), bounds=(lo, hi), method="bounded",
                         options={"xatol": PROFILE_TOL[name] / 2})
     best = max(seen, key=seen.get)
-    n = (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
-         + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
-    return Profile(effect=name, value=float(best), gain=float(seen[best] - value(0.0)), n_data=n,
-                   grid=sorted(seen.items()))
+    gain = float(seen[best] - value(0.0))
+    return Profile(effect=name, value=float(best), gain=gain, n_data=n, grid=sorted(seen.items()), order=order,
+                   gains={order: gain})
 
 
-def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=()):
+def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=(),
+                           rounds: int = 1, tol: float = 1.0):
     """(log-likelihood with the noise levels concentrated out, model) after settling ``model`` with ``effects``
     on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
-    fixed), so two models compare as a likelihood ratio on the same data."""
+    fixed), so two models compare as a likelihood ratio on the same data. With ``rounds`` > 1 the noise step and
+    the second LM repeat until the log-likelihood moves by less than ``tol`` nats (an effect whose parameters move
+    the poses far, as a latency does, needs them)."""
     problem = Problem(log, lay, model, use, start, effects)
     st, _ = least_squares(problem, state(start, model, effects), max_iterations=PROFILE_ITERATIONS)
-    model = _ml_noise(problem, st, with_state(model, st, effects))
-    if problem.noise_effects:
-        model = noise_effects_step(problem, st, model)
-        model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
-    problem = Problem(log, lay, model, use, st.poses, effects)
-    st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
-    return _concentrated_log_likelihood(problem, st), with_state(model, st, effects)
+    model = with_state(model, st, effects)
+    ll = -np.inf
+    for _ in range(rounds):
+        model = _ml_noise(problem, st, model)
+        if problem.noise_effects:
+            model = noise_effects_step(problem, st, model)
+            model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
+        problem = Problem(log, lay, model, use, st.poses, effects)
+        st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
+        model = with_state(model, st, effects)
+        last, ll = ll, _concentrated_log_likelihood(problem, st)
+        if abs(ll - last) < tol:
+            break
+    return ll, model
 
 
 def _group_sums(problem: Problem, st: State) -> dict:
@@ -1016,7 +1074,7 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         progress.stage(f"{name} profile", None)
         prof = profile(log, out, name)
         profiles.append(prof)
-        start = with_effect(start, name, prof.value)
+        start = with_effect(start, name, prof.value, prof.order)
         out = fit(log, start, seed=seed, progress=progress,
                   marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked)
     if noisy:

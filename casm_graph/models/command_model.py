@@ -6,10 +6,11 @@ largest command magnitude in the log), so every coefficient is a velocity in m/s
 whole model is one parameter vector ``[a_0..a_Dv, b_0..b_Dw]`` that is linear in the basis: the
 graph holds it as a single vector variable next to the poses and the sensor polynomial.
 
-With the ``actuator_lag`` effect the velocity follows ``f(command)`` through a first-order lag of
-time constant ``lag`` (s): v_k = a_k v_(k-1) + (1 - a_k) f(c_k), a_k = exp(-dt_k / lag). The lag
-acts on the basis, so the model stays linear in its coefficients; ``velocities(controls)``
-without step durations is the steady-state map.
+With the ``actuator_lag`` effect the velocity follows ``f(command)`` through ``lag_order`` cascaded
+first-order lags, each of time constant ``lag / lag_order`` (so ``lag`` is the mean delay whatever the
+order), each stage driven by the previous one's mean over the step (order 2: a critically damped drive);
+the velocity of a step is the lag's mean over it. The lag acts on the basis, so the model stays linear in its
+coefficients; ``velocities(controls)`` without step durations is the steady-state map.
 """
 from __future__ import annotations
 
@@ -22,19 +23,29 @@ KIND = "command_poly"
 
 
 @njit(cache=True)
-def _first_order(x: np.ndarray, a: np.ndarray) -> np.ndarray:
+def _first_order(x: np.ndarray, a: np.ndarray, g: np.ndarray) -> np.ndarray:
     y = np.empty_like(x)
     y[0] = x[0]
+    end = x[0].copy()
     for k in range(1, x.shape[0]):
-        y[k] = a[k] * y[k - 1] + (1.0 - a[k]) * x[k]
+        y[k] = x[k] + (end - x[k]) * g[k]
+        end = a[k] * end + (1.0 - a[k]) * x[k]
     return y
 
 
-def lagged(x: np.ndarray, dt: np.ndarray, lag: float) -> np.ndarray:
-    """Rows of ``x`` (one per step) through a first-order lag of time constant ``lag``, from rest at x[0]."""
+def lagged(x: np.ndarray, dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
+    """Rows of ``x`` (one per step, held over it) through ``order`` cascaded first-order lags of time constant
+    ``lag / order`` (mean delay ``lag``), from rest at x[0]: each row out is the lag's mean over its step, as
+    the step's displacement needs (the value at the step's end would lead the motion by half a step per stage)."""
     if lag <= 0:
         return x
-    return _first_order(np.ascontiguousarray(x, dtype=float), np.exp(-np.asarray(dt, float) / lag))
+    r = np.asarray(dt, float) * order / lag
+    a = np.exp(-r)
+    g = np.where(r > 1e-9, -np.expm1(-r) / np.maximum(r, 1e-300), 1.0)    # mean of exp(-t / tau) over the step
+    y = np.ascontiguousarray(x, dtype=float)
+    for _ in range(order):
+        y = _first_order(y, a, g)
+    return y
 
 
 @dataclass(frozen=True)
@@ -47,7 +58,8 @@ class CommandModel:
     v_std: np.ndarray | None = None
     w_std: np.ndarray | None = None
     command_range: tuple = ((0.0, 0.0), (0.0, 0.0))
-    lag: float = 0.0                      # s, first-order lag between command and velocity (0: none)
+    lag: float = 0.0                      # s, mean delay of the lag between command and velocity (0: none)
+    lag_order: int = 1                    # cascaded first-order stages of that lag (1 or 2)
 
     @property
     def params(self) -> np.ndarray:
@@ -70,7 +82,7 @@ class CommandModel:
         bv, bw = u[:, 0:1] ** np.arange(self.n_v), u[:, 1:2] ** np.arange(len(self.w_coef))
         if dt is None or self.lag <= 0:
             return bv, bw
-        both = lagged(np.hstack([bv, bw]), dt, self.lag)
+        both = lagged(np.hstack([bv, bw]), dt, self.lag, self.lag_order)
         return both[:, :self.n_v], both[:, self.n_v:]
 
     def velocities(self, controls: np.ndarray, dt: np.ndarray | None = None) -> np.ndarray:
@@ -87,7 +99,7 @@ class CommandModel:
                 "std": {"v": lst(self.v_std), "w": lst(self.w_std)},
                 "command_range": {"v": [float(x) for x in self.command_range[0]],
                                   "w": [float(x) for x in self.command_range[1]]},
-                "lag": float(self.lag)}
+                "lag": float(self.lag), "lag_order": int(self.lag_order)}
 
     @classmethod
     def from_json(cls, am: dict) -> "CommandModel":
@@ -99,7 +111,7 @@ class CommandModel:
                    v_std=None if std.get("v") is None else np.array(std["v"], float),
                    w_std=None if std.get("w") is None else np.array(std["w"], float),
                    command_range=(tuple(rng.get("v", (0.0, 0.0))), tuple(rng.get("w", (0.0, 0.0)))),
-                   lag=float(am.get("lag", 0.0)))
+                   lag=float(am.get("lag", 0.0)), lag_order=int(am.get("lag_order", 1)))
 
 
 def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,

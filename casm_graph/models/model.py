@@ -289,6 +289,8 @@ def _command_model(w: _Where, am: dict):
             w.vec(rng[c], f"action_model.command_range.{c}", n=2)
     if "lag" in am:
         w.num(am["lag"], "action_model.lag", nonneg=True)
+    if am.get("lag_order", 1) not in (1, 2):
+        w.fail("action_model.lag_order", f"is {_one_line(repr(am['lag_order']))[:40]}, expected 1 or 2")
     return CommandModel.from_json(am)
 
 

@@ -16,7 +16,7 @@ class ActuatorLag(Effect):
     start = (0.005,)
     scale = (0.01,)
     explains = (("forward", "time_since_action_change"), ("lateral", "time_since_action_change"),
-                ("turn", "time_since_action_change"))
+                ("turn", "time_since_action_change"), ("forward", "acceleration"), ("turn", "turn_acceleration"))
     distinguished_by = ("commands that change faster than the lag, with sightings just after each change: the "
                         "body's motion trails the command, while a camera latency shifts only what the camera "
                         "sees")

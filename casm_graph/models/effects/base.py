@@ -38,6 +38,9 @@ class Effect:
     distinguished_by: str = ""              # what in a log tells it from the effects it resembles (look-alikes)
     noise_only: bool = False                # parameters set by the noise step, not least squares
     continuous_only: bool = False           # needs continuous (v, w) commands: the action-table simulator refuses it
+    uses_velocity: bool = False             # its sensor hooks read ctx["velocity"] (the body velocity at the sighting)
+    velocity_window: str = ""               # the parameter (s) over which that velocity is averaged before the sighting
+                                            # on continuous commands (empty: the step that ends at the sighting)
 
     def __init__(self, log: Log | None = None):
         self.log = log

@@ -14,7 +14,10 @@ class CameraLatency(Effect):
     start = (0.0,)
     scale = (0.005,)
     uses_velocity = True
-    explains = (("bearing", "turn_rate"), ("reading", "speed"), ("bearing", "speed"))
+    velocity_window = "delay"       # the image shows the pose the delay before: the mean velocity over it moves it there
+    # the last two: a delay the smoothed poses take in (sightings that pin them) shows as motion trailing the commands
+    explains = (("bearing", "turn_rate"), ("reading", "speed"), ("bearing", "speed"),
+                ("forward", "acceleration"), ("turn", "turn_acceleration"))
     distinguished_by = ("turns of the body with the commands steady: the image trails the motion itself, while an"
                         " actuator lag delays only the motion after a command change")
     physics = ("Images take time to expose, transfer and process, so each sighting was taken where the "
