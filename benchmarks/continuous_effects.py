@@ -26,15 +26,15 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
     ap.add_argument("--minutes", type=float, default=4.0)
     a = ap.parse_args()
-    print(f"| {a.effect}: true | seed | fitted | log-likelihood gain | delta BIC | strong evidence | seconds |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"| {a.effect}: true | seed | fitted | stages | log-likelihood gain | delta BIC | strong evidence | seconds |")
+    print("|---|---|---|---|---|---|---|---|")
     for value in a.values:
         for seed in a.seeds:
             log, _ = simulate(FloorConfig(minutes=a.minutes, seed=seed, dt=0.1, **{SWITCH[a.effect]: value}))
             t0 = time.perf_counter()
             fit = continuous.fit(log, continuous.start_model(log), seed=seed, marginals=False)
             prof = continuous.profile(log, fit, a.effect)
-            print(f"| {value:g} | {seed} | {prof.value:.3f} | {prof.gain:.1f} | {prof.delta_bic:.1f} | "
+            print(f"| {value:g} | {seed} | {prof.value:.3f} | {prof.order} | {prof.gain:.1f} | {prof.delta_bic:.1f} | "
                   f"{'yes' if prof.delta_bic <= BIC_SUPPORT else 'no'} | {time.perf_counter() - t0:.0f} |", flush=True)
 
 
