@@ -68,6 +68,7 @@ def test_lag_order_survives_model_json_and_a_bad_one_is_refused(tmp_path):
     back = Model.load(tmp_path / "model.json")
     assert back.command.lag_order == 2 and back.command.lag == 0.25
     assert CT.with_effect(back, "actuator_lag", 0.0).command.lag_order == 1          # off: no stages left
+    assert CT.with_effect(back, "lens_distortion", 0.1).effects["lens_distortion"] == {"k": 0.1}   # a lens has no stages
     data["action_model"]["lag_order"] = 3
     (tmp_path / "bad.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match="lag_order"):

@@ -149,8 +149,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
     coarse = CT.layout(log, CT.COARSE_KNOT_DT)
     cuse = CT.gate(log, full[log.obs_step], model, effects=own)
     start = full[coarse.knots]
-    n = (3 * (coarse.n_poses - 1) + int((cuse[0] & ~np.isnan(log.obs_reading)).sum())
-         + int((cuse[1] & ~np.isnan(log.obs_bearing)).sum()))
+    n = CT.residual_rows(log, coarse, cuse)
     if todo or hooked:        # every candidate scored against one base, settled as they are
         ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=HOOKED_SETTLE_ROUNDS)
     for name in todo:

@@ -879,7 +879,7 @@ def with_effect(model: Model, name: str, value: float, order: int | None = None)
     if name not in EFFECTS:
         raise ValueError(f"{name!r} is not profiled on continuous-command logs ({', '.join(EFFECTS)} are)")
     param = {"actuator_lag": "tau", "lens_distortion": "k"}[name]
-    order = int(order or model.command.lag_order) if value else 1
+    order = int(order or model.command.lag_order) if value and name == "actuator_lag" else 1
     entry = {param: float(value), **({"order": order} if order != 1 else {})}
     effects = {**{k: v for k, v in model.effects.items() if k != name}, **({name: entry} if value else {})}
     if name == "actuator_lag":
@@ -922,8 +922,7 @@ def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
     lay = layout(log, COARSE_KNOT_DT)
     use = gate(log, fit.poses[log.obs_step], fit.model, effects=effects)
     start = fit.poses[lay.knots]
-    n = (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
-         + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
+    n = residual_rows(log, lay, use)
     best = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=1)
     if name == "actuator_lag" and best.delta_bic < LAG_ORDER_SUPPORT:
         for order in LAG_ORDERS[1:]:
@@ -965,6 +964,12 @@ def _profile_order(log: Log, lay: Layout, use, start: np.ndarray, model: Model, 
     gain = float(seen[best] - value(0.0))
     return Profile(effect=name, value=float(best), gain=gain, n_data=n, grid=sorted(seen.items()), order=order,
                    gains={order: gain})
+
+
+def residual_rows(log: Log, lay: Layout, use) -> int:
+    """Residual rows of a graph on ``lay`` with the sightings ``use`` keeps: the n of BIC."""
+    return (3 * (lay.n_poses - 1) + int((use[0] & ~np.isnan(log.obs_reading)).sum())
+            + int((use[1] & ~np.isnan(log.obs_bearing)).sum()))
 
 
 def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=(),
