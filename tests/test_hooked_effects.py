@@ -102,16 +102,21 @@ def test_range_dependent_noise_on_a_continuous_log_is_fitted_by_the_noise_step(t
     assert cal.model.reading_sigma == pytest.approx(0.05, rel=0.25)      # the world's sigma at zero distance
 
 
-@pytest.mark.science
-def test_a_battery_fade_on_a_continuous_log_is_named_fitted_and_explained(tmp_path):
-    """Independent world, continuous commands, seed 0, 3 minutes, fade 0.04 per minute. Measured at 4 minutes:
-    delta BIC -11,060 (next candidate +4.5), fitted 0.0378 +- 0.0014 per minute, position RMS 0.0086 -> 0.0080 m,
-    verdict none after."""
-    generate(tmp_path / "log", kind="continuous", minutes=3, seed=0, effect="battery_fade", strength=0.04)
+def _diagnosed_world(tmp_path, effect, minutes, seed, strength=None):
+    """(truth, log, calibration, diagnosis) of an independent continuous world with ``effect`` hidden."""
+    generate(tmp_path / "log", kind="continuous", minutes=minutes, seed=seed, effect=effect, strength=strength)
     truth = json.loads((tmp_path / "log" / "world_truth.json").read_text())
     log = cg.load_log(tmp_path / "log")
     cal = cg.calibrate(log)
-    diag = cg.diagnose(log, cal)
+    return truth, log, cal, cg.diagnose(log, cal)
+
+
+@pytest.mark.science
+def test_a_battery_fade_on_a_continuous_log_is_named_fitted_and_explained(tmp_path):
+    """Independent world, continuous commands, seed 0, 3 minutes, fade 0.04 per minute. Measured at 4 minutes
+    (benchmarks/hooked_effects.py): delta BIC -13,443, fitted 0.0378 +- 0.0014 per minute, position RMS
+    0.0086 -> 0.0080 m, verdict none after."""
+    truth, log, cal, diag = _diagnosed_world(tmp_path, "battery_fade", minutes=3, seed=0, strength=0.04)
     assert diag.verdict == "battery_fade", diag.verdict
     best = diag.candidates[0]
     assert best.effect == "battery_fade" and best.delta_bic < -100
@@ -132,11 +137,7 @@ def test_a_second_order_lag_on_a_continuous_log_is_named_fitted_and_explained(tm
     actuator_lag with two stages, calibrate fits its mean delay, the error against the truth falls and the verdict
     is none after. At 4 minutes (seeds 0-2, benchmarks/hooked_effects.py): mean delay 0.520 / 0.296 / 0.353 s
     against 0.526 / 0.304 / 0.360, position RMS 0.0111 -> 0.0086, 0.0106 -> 0.0088, 0.0097 -> 0.0079 m."""
-    generate(tmp_path / "log", kind="continuous", minutes=2, seed=1, effect="actuator_lag")
-    truth = json.loads((tmp_path / "log" / "world_truth.json").read_text())
-    log = cg.load_log(tmp_path / "log")
-    cal = cg.calibrate(log)
-    diag = cg.diagnose(log, cal)
+    truth, log, cal, diag = _diagnosed_world(tmp_path, "actuator_lag", minutes=2, seed=1)
     assert diag.verdict == "actuator_lag", diag.verdict
     best = diag.candidates[0]
     assert best.effect == "actuator_lag" and best.parameters.get("order") == 2, best.parameters

@@ -901,7 +901,6 @@ class Profile:
     n_data: int                    # residual rows, for BIC
     grid: list                     # (value, log-likelihood) pairs evaluated, in order
     order: int = 1                 # the lag's stages (LAG_ORDERS); one more free parameter when above 1
-    gains: dict = field(default_factory=dict)   # order -> gain, for each order profiled
 
     @property
     def delta_bic(self) -> float:
@@ -927,10 +926,8 @@ def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
     if name == "actuator_lag" and best.delta_bic < LAG_ORDER_SUPPORT:
         for order in LAG_ORDERS[1:]:
             other = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=order)
-            gains = {**best.gains, **other.gains}
             if other.delta_bic < best.delta_bic:
                 best = other
-            best.gains = gains
     return best
 
 
@@ -962,8 +959,7 @@ def _profile_order(log: Log, lay: Layout, use, start: np.ndarray, model: Model, 
                         options={"xatol": PROFILE_TOL[name] / 2})
     best = max(seen, key=seen.get)
     gain = float(seen[best] - value(0.0))
-    return Profile(effect=name, value=float(best), gain=gain, n_data=n, grid=sorted(seen.items()), order=order,
-                   gains={order: gain})
+    return Profile(effect=name, value=float(best), gain=gain, n_data=n, grid=sorted(seen.items()), order=order)
 
 
 def residual_rows(log: Log, lay: Layout, use) -> int:
