@@ -199,14 +199,81 @@ def _d_and_L(z):
 
 
 @njit(cache=True)
-def _pair_cost(z, a, Ia, Ld, ed, u, SA_inv):
-    """-log of alpha(s) delta(s') f_A(d(s, s')) up to a constant; delta in information form."""
-    ra = z[:3] - a
-    b = z[3:]
-    d, _ = _d_and_L(z)
+def _pair_cost(z, a, Ia, Ld, ed, u, w):
+    """-log of alpha(s) delta(s') f_A(d(s, s')) up to a constant; delta in information form, f_A's precision ``w``."""
+    c, s = math.cos(z[2]), math.sin(z[2])
+    dx, dy = z[3] - z[0], z[4] - z[1]
+    e0 = c * dx + s * dy - u[0]
+    e1 = -s * dx + c * dy - u[1]
+    e2 = _wrap(z[5] - z[2]) - u[2]
+    q = w[0] * e0 * e0 + w[1] * e1 * e1 + w[2] * e2 * e2
+    lin = 0.0
+    for i in range(3):
+        lin += z[3 + i] * ed[i]
+        for j in range(3):
+            q += (z[i] - a[i]) * Ia[i, j] * (z[j] - a[j]) + z[3 + i] * Ld[i, j] * z[3 + j]
+    return 0.5 * q - lin
+
+
+@njit(cache=True)
+def _cholesky_solve(H, g):
+    """H^-1 g for a small symmetric positive definite H (columns of ``g``), by Cholesky in plain loops: numba's
+    LAPACK calls cost more than the arithmetic at 6 x 6."""
+    n = H.shape[0]
+    R = np.zeros((n, n))
+    for j in range(n):
+        s = H[j, j]
+        for m in range(j):
+            s -= R[j, m] * R[j, m]
+        R[j, j] = math.sqrt(s) if s > 0.0 else math.nan     # not positive definite: the caller falls back
+        for i in range(j + 1, n):
+            s = H[i, j]
+            for m in range(j):
+                s -= R[i, m] * R[j, m]
+            R[i, j] = s / R[j, j]
+    x = g.copy()
+    for c in range(x.shape[1]):
+        for i in range(n):
+            s = x[i, c]
+            for m in range(i):
+                s -= R[i, m] * x[m, c]
+            x[i, c] = s / R[i, i]
+        for i in range(n - 1, -1, -1):
+            s = x[i, c]
+            for m in range(i + 1, n):
+                s -= R[m, i] * x[m, c]
+            x[i, c] = s / R[i, i]
+    return x
+
+
+@njit(cache=True)
+def _normal_equations(z, a, Ia, Lk, ek, u, w):
+    """Gauss-Newton system (H, grad) of :func:`_pair_cost` at ``z``, with d(z) and its Jacobian L."""
+    d, L = _d_and_L(z)
     d[2] = _wrap(d[2])
-    e = d - u
-    return 0.5 * (ra @ Ia @ ra + b @ Ld @ b + e @ SA_inv @ e) - b @ ed
+    H = np.zeros((6, 6))
+    grad = np.zeros((6, 1))
+    for i in range(6):
+        for j in range(i, 6):
+            h = 0.0
+            for r in range(3):
+                h += w[r] * L[r, i] * L[r, j]
+            H[i, j] = h
+        gi = 0.0
+        for r in range(3):
+            gi += w[r] * L[r, i] * (d[r] - u[r])
+        grad[i, 0] = gi
+    for i in range(3):
+        for j in range(3):
+            H[i, j + 0] += Ia[i, j] if j >= i else 0.0
+            H[i + 3, j + 3] += Lk[i, j] if j >= i else 0.0
+            grad[i, 0] += Ia[i, j] * (z[j] - a[j])
+            grad[i + 3, 0] += Lk[i, j] * z[j + 3]
+        grad[i + 3, 0] -= ek[i]
+    for i in range(6):
+        for j in range(i):
+            H[i, j] = H[j, i]
+    return H, grad, d, L
 
 
 @njit(cache=True)
@@ -227,7 +294,7 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True
     n = u_prev.shape[0]
     out = np.empty((n, 3))
     var = np.zeros((n, 3)) if variance else None
-    SA_inv = np.diag(1.0 / act_sig ** 2)
+    w = 1.0 / act_sig ** 2
     for k in range(n):
         a = mu_a[k]
         Ia = _inv3(P_a[k])
@@ -235,29 +302,32 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True
         g0[2] = mu_a[k + 1, 2] + _wrap(g0[2] - mu_a[k + 1, 2])
         z = np.concatenate((a, g0))
         Lk, ek = Ld[k + 1], ed[k + 1]
-        cost = _pair_cost(z, a, Ia, Lk, ek, u_prev[k], SA_inv)
+        cost = _pair_cost(z, a, Ia, Lk, ek, u_prev[k], w)
         pred = u_prev[k].copy()
-        HL = None
+        H_best = np.zeros((6, 6))
+        L_best = np.zeros((3, 6))
+        moved = False
         for it in range(iterations):
-            d, L = _d_and_L(z)
-            d[2] = _wrap(d[2])
-            H = L.T @ SA_inv @ L
-            H[:3, :3] += Ia
-            H[3:, 3:] += Lk
-            grad = L.T @ SA_inv @ (d - u_prev[k])
-            grad[:3] += Ia @ (z[:3] - a)
-            grad[3:] += Lk @ z[3:] - ek
-            step = -np.linalg.solve(H, grad)
+            H, grad, d, L = _normal_equations(z, a, Ia, Lk, ek, u_prev[k], w)
+            step = -_cholesky_solve(H, grad)[:, 0]
+            if not np.all(np.isfinite(step)):       # H not positive definite to round-off: LAPACK's general solve
+                step = -np.linalg.solve(H, grad[:, 0])
             znew = z + step
-            c = _pair_cost(znew, a, Ia, Lk, ek, u_prev[k], SA_inv)
+            c = _pair_cost(znew, a, Ia, Lk, ek, u_prev[k], w)
             if it > 0 and c >= cost:
                 break
             cost = c
             pred = d + L @ step
-            HL = (H, L)
+            H_best, L_best, moved = H, L, True
             z = znew
         out[k] = pred
-        if variance and HL is not None:
-            H, L = HL
-            var[k] = np.diag(L @ np.linalg.solve(H, np.ascontiguousarray(L.T)))
+        if variance and moved:
+            X = _cholesky_solve(H_best, np.ascontiguousarray(L_best.T))
+            if not np.all(np.isfinite(X)):
+                X = np.linalg.solve(H_best, np.ascontiguousarray(L_best.T))
+            for r in range(3):
+                v = 0.0
+                for i in range(6):
+                    v += L_best[r, i] * X[i, r]
+                var[k, r] = v
     return out, var
