@@ -27,10 +27,10 @@ def main():
     print("| seed | vx RMS mm/s | vy RMS mm/s | w RMS rad/s | curve RMS px | reading sigma | bearing sigma | "
           "iterations | seconds |")
     print("|---|---|---|---|---|---|---|---|---|")
-    if args.outlier_m2:
-        ekfs_em.OUTLIER_M2 = args.outlier_m2
     ws, pruned = [], []
     extra = {"marginals": False} if args.method == "graph" else {}
+    if args.outlier_m2:
+        extra["outlier_m2"] = args.outlier_m2
     for seed in args.seeds:
         log, truth = simulate(SimConfig(minutes=args.minutes, seed=seed))
         t = time.perf_counter()

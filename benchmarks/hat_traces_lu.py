@@ -35,7 +35,7 @@ def main():
     a = ap.parse_args()
     log, _ = simulate(FloorConfig(minutes=a.minutes, seed=1, dt=0.1, lens_k=-0.1, detect_prob=0.4))
     start = CT.initialise(log, CT.start_model(log))
-    lay = CT.layout(log, CT.COARSE_KNOT_DT)
+    lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
     problem = CT.Problem(log, lay, start.model, poses=start.poses[lay.knots])
     A, _, groups = problem.jacobian(CT.state(start.poses[lay.knots], start.model))
     H = (A.T @ A).tocsc()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from casm_graph.analysis import diagnosis
@@ -37,14 +38,15 @@ def main():
     write(log, truth, w / "log")
     _, fit = calibrate_run.run(w / "log", w / "run", seed=a.seed)
     log = load(w / "log")
-    kw = {"rounds": diagnosis.CANDIDATE_ROUNDS, "iterations": diagnosis.CANDIDATE_ITERATIONS}
+    kw = {"rounds": diagnosis.DEFAULTS.candidate_rounds, "iterations": diagnosis.DEFAULTS.candidate_iterations}
     refit = effect_fit.fit(log, fit.model, fit.poses, [], **kw)
     base = effect_fit.fit(log, refit.model, refit.poses, [], **kw)
     cand, model, poses = diagnosis.fit_candidate(log, refit, base, a.effect)
     for n in a.iterations:
+        opts = replace(diagnosis.DEFAULTS, fold_iterations=n)
         db, de = [], []
-        hb = diagnosis.heldout_log_likelihood(log, base.model, base.poses, [], detail=db, iterations=n)
-        he = diagnosis.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de, iterations=n)
+        hb = diagnosis.heldout_log_likelihood(log, base.model, base.poses, [], detail=db, options=opts)
+        he = diagnosis.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de, options=opts)
         if a.folds:
             for label, rows in (("base", db), (a.effect, de)):
                 for i, r in enumerate(rows):

@@ -36,7 +36,7 @@ def main():
     opt = effect_fit.fit(log, m, p, ["false_detections"], **kw)
     for its in (0, 1, 4):
         f = effect_fit.fit(log, opt.model, opt.poses, ["false_detections"], theta=opt.theta, rounds=1,
-                           iterations=its, fit_noise=False, rel_tol=diagnosis.FOLD_TOL)
+                           iterations=its, fit_noise=False, rel_tol=diagnosis.DEFAULTS.fold_tol)
         t = f.problem.log_likelihood_terms(f.state)
         print(f"{its} iterations: log-likelihood {f.log_likelihood:.1f}, " + ", ".join(f"{k} {v:.1f}" for k, v in t.items())
               + f", joint density {t['motion'] + t['observation']:.1f}", flush=True)

@@ -6,10 +6,11 @@
     diag = cg.diagnose(log, cal)         # where the model fails, which effect is missing
     post = cg.uncertainty(log, cal)      # emcee on the noise levels, Laplace on the rest
 """
-from casm_graph.analysis.diagnosis import Diagnosis
+from casm_graph.analysis.diagnosis import DiagnoseOptions, Diagnosis
 from casm_graph.analysis.groundtruth import evaluate as against_truth
 from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit.calibration import CalibrateOptions, Calibration
+from casm_graph.fit.continuous import CommandGraphOptions
 from casm_graph.fit.methods.graph import GraphOptions
 from casm_graph.io.log import Log, LogError
 from casm_graph.io.log import load as load_log
@@ -24,4 +25,4 @@ from casm_graph.sim.protocols import simulate, write_log
 
 __all__ = ["load_log", "simulate", "write_log", "calibrate", "diagnose", "uncertainty", "Effect", "register", "catalog",
            "model_error", "against_truth", "load_mrclam", "find_mrclam", "LogError", "Log", "CalibrateOptions",
-           "Calibration", "GraphOptions", "Diagnosis", "Uncertainty", "ProposalOptions"]
+           "Calibration", "GraphOptions", "CommandGraphOptions", "DiagnoseOptions", "Diagnosis", "Uncertainty", "ProposalOptions"]

@@ -78,7 +78,8 @@ def test_calibrate_in_memory_then_save_as_the_command_does(bundle, cal, tmp_path
                                    "max_sensor_degree": 6,
                                    "graph": {"coarse_stride": 10, "coarse_rounds": 6, "coarse_iterations": 5,
                                              "coarse_relax": 1.0, "realias_after": [2, 4], "full_iterations": 15,
-                                             "full_rounds": 2}}
+                                             "full_rounds": 2},
+                                   "command_graph": cg.CommandGraphOptions().to_json()}
     assert m["fit"]["log"] == str(bundle) and m["fit"]["version"]
     assert main(["calibrate", str(bundle), "--out", str(tmp_path / "cli"), "--quiet"]) == 0
     c = json.loads((tmp_path / "cli" / "model.json").read_text())
@@ -130,11 +131,13 @@ def test_user_effect_through_calibrate(bundle, cal):
 
 def test_diagnose_and_uncertainty_from_a_calibration(bundle, cal, tmp_path):
     log = cg.load_log(bundle)
-    diag = cg.diagnose(log, cal, candidates=["battery_fade"], workers=1)
-    assert diag.verdict in {"none", "battery_fade"} or diag.verdict.startswith("unexplained:")
+    strict = cg.DiagnoseOptions(structure_omega2=0.9)          # no residual structure counts: no unexplained verdict
+    diag = cg.diagnose(log, cal, candidates=["battery_fade"], workers=1, options=strict)
+    assert diag.verdict in {"none", "battery_fade"}
     assert diag.summary().startswith("verdict:")
     diag.save(tmp_path / "diag")
-    assert json.loads((tmp_path / "diag" / "diagnosis.json").read_text())["verdict"] == diag.verdict
+    saved = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
+    assert saved["verdict"] == diag.verdict and saved["options"] == strict.to_json()
     post = cg.uncertainty(log, cal, walkers=12, max_steps=60, seed=1)
     assert set(post.intervals) >= {"reading_sigma", "bearing_sigma"}
     post.save(tmp_path / "unc")
@@ -193,3 +196,17 @@ def test_graph_options_are_passed_in_and_recorded(bundle, cal):
     assert fast.fit.stages.count("coarse") <= 2 * quick.coarse_iterations
     assert fast.fit.iterations < cal.fit.iterations
     assert np.sqrt(np.mean((fast.model.velocities - cal.model.velocities) ** 2)) < 0.05
+
+
+def test_command_graph_options_are_passed_in_and_recorded():
+    """A continuous-command calibration searches as ``cg.CommandGraphOptions`` say and records them."""
+    log, _ = cg.simulate("floor", minutes=2, seed=0)
+    quick = cg.CommandGraphOptions(coarse_rounds=2, coarse_iterations=4, full_knot_dt=0.5, full_rounds=1,
+                                   full_settle=0)
+    cal = cg.calibrate(log, command_graph=quick)
+    fit = cal.model_json["fit"]
+    assert fit["options"]["command_graph"] == quick.to_json() and fit["knot_dt"] == 0.5
+    assert cal.fit.stages.count("coarse") <= quick.coarse_rounds * quick.coarse_iterations
+    assert "full" in cal.fit.stages and cal.fit.stages.count("full") <= quick.full_iterations
+    v = cal.model.command.velocities(log.controls, log.dt)
+    assert np.all(np.isfinite(v)) and np.corrcoef(v[:, 0], log.controls[:, 0])[0, 1] > 0.9

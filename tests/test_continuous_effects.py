@@ -138,7 +138,7 @@ def test_lens_rows_jacobian_matches_numerical():
     log, _ = simulate(FloorConfig(minutes=0.5, seed=3, dt=0.1, lens_k=-0.1))
     m = CT.start_model(log).with_(reading_poly=np.array([0.02, 1.01, 0.0, -0.001]), reading_sigma=10.0)
     m = CT.with_effect(m, "lens_distortion", -0.15)         # a wide sigma keeps every row inside Huber's core
-    lay = CT.layout(log, CT.COARSE_KNOT_DT)
+    lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
     problem = CT.Problem(log, lay, m)
     st = CT.state(log.truth[lay.knots, 1:] + 0.01, m)
     _, _, re, (Jp, Jc, _), _, _, _ = problem.rows(st)

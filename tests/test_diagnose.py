@@ -241,3 +241,17 @@ def test_lookalikes_are_named_with_what_would_separate_them():
     assert [g["effects"] for g in rel] == [["actuator_lag", "camera_latency"]]
     assert "10 % of the best" in " ".join(D.lookalike_words(rel))
     assert all(REGISTRY[n].distinguished_by for n in REGISTRY)      # every catalog effect says what separates it
+
+
+def test_the_evidence_a_verdict_needs_is_an_option():
+    """``DiagnoseOptions`` sets the evidence: a candidate the default thresholds support is refused under a stricter
+    BIC threshold, and a wider look-alike margin groups candidates the default separates."""
+    cands = [cand("actuator_lag", -15, 3), cand("camera_latency", -12, 2)]
+    assert D.verdict(cands, [])[0] == "actuator_lag"
+    v, words = D.verdict(cands, [], options=D.DiagnoseOptions(bic_support=-20))
+    assert v == "none" and "above -20" in " ".join(words)
+    far = [cand("actuator_lag", -169, 98), cand("camera_latency", -150, 90)]
+    assert D.lookalikes(far, "actuator_lag") == []
+    wide = D.lookalikes(far, "actuator_lag", options=D.DiagnoseOptions(lookalike_bic=30))
+    assert [g["effects"] for g in wide] == [["actuator_lag", "camera_latency"]] and wide[0]["closer_than"] == "closer than 30"
+    assert D.DiagnoseOptions(folds=4).to_json()["folds"] == 4 and "proposal" in D.DEFAULTS.to_json()

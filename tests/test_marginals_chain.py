@@ -74,7 +74,7 @@ def test_noise_step_solves_equal_the_sparse_lu(table_fit):
 def test_floor_graph_marginals_equal_gtsam():
     log, _ = cg.simulate("floor", minutes=2, seed=1)
     fit = CT.fit(log, marginals=False)
-    lay = CT.layout(log, CT.FULL_KNOT_DT)
+    lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
     kp = fit.poses[lay.knots]
     problem, st = CT.Problem(log, lay, fit.model, None, kp), CT.state(kp, fit.model)
     m, ridge = chain_marginals(problem, st)
@@ -93,7 +93,7 @@ def test_floor_graph_damped_step_equals_gtsam(hooked):
     """The continuous graph's own elimination (what least_squares uses) solves GTSAM's damped linear graph."""
     log, _ = cg.simulate("floor", minutes=1, seed=2)
     effects = [get_effect(n)(log) for n in hooked]
-    lay = CT.layout(log, CT.COARSE_KNOT_DT)
+    lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
     m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=0.95),
                                   reading_poly=np.array([0.01, 1.0, 0.0, 0.0]))
     st = CT.state(log.truth[lay.knots, 1:] + 0.02, m, effects)

@@ -150,7 +150,7 @@ def test_regional_noise_problem_weights_each_segment_by_its_region():
     k[4] = [0.02, 0.1, 0.02]
     regions = Regions((0.0, 0.0, 12.0, 8.0), (3, 2))
     m = m.with_(effects={"regional_motion_noise": entry(regions, k)})
-    lay = CT.layout(log, CT.FULL_KNOT_DT)
+    lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
     knots = log.truth[lay.knots, 1:]
     p = CT.Problem(log, lay, m, poses=knots)
     reg = region_of(knots[:-1, :2], (12.0, 8.0), (3, 2))

@@ -17,7 +17,7 @@ from .conftest import FULL
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 IN_CI = {"00_quickstart.ipynb"}
 REDUCED = {"CASM_NB_MINUTES": "2", "CASM_NB_UNC_STEPS": "100", "CASM_NB_TRIALS": "1",
-           "CASM_NB_CANDIDATES": "2"}
+           "CASM_NB_CANDIDATES": "1"}
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])

@@ -5,7 +5,7 @@ covariate, strongest first) on the command-model graph of :mod:`casm_graph.fit.c
 is re-settled on the log (poses, command map and polynomial; noise levels as given), and its
 motion residuals per knot-to-knot segment and its reading and bearing residuals per sighting are
 tested. ``time_since_action_change`` is the time since the command last moved by more than
-``COMMAND_CHANGE`` of its range; with a fixed camera the image angle is the bearing (listed first,
+``DiagnoseOptions.command_change`` of its range; with a fixed camera the image angle is the bearing (listed first,
 so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
 candidates, the profiled ones placed by their profile (:func:`casm_graph.fit.continuous.profile`), the others
 fitted through their hooks, and every one scored by delta BIC against one base, each settled the same way at
@@ -20,9 +20,8 @@ import numpy as np
 
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
-from casm_graph.analysis.diagnosis import (Candidate, Diagnosis, channel_report, lookalike_words, lookalikes,
-                                           proposal_for, structures, verdict)
-from casm_graph.analysis.proposal import ProposalOptions
+from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, channel_report,
+                                           lookalike_words, lookalikes, proposal_for, structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
@@ -31,20 +30,13 @@ from casm_graph.io.log import Log, LogError
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.model import Model
 
-COMMAND_CHANGE = 0.1
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
                         "{:.3f} s ({} first-order stage{}).",
         "lens_distortion": "For a fixed camera the image angle is the bearing: the reading is the polynomial times "
                            "(1 + {:.4f} bearing^2)."}
-SETTLE_ITERATIONS = 8
-HOOKED_SETTLE_ROUNDS = 2     # noise step and LM rounds settling each candidate at its value (and the base they are
-                             # compared with): a latency's velocity window follows its delay from one round to the next
-LOOKALIKE_RELATIVE = 0.1     # each profile is a short re-optimisation whose settling error grows with the change it
-                             # makes (hundreds of nats of delta BIC on effect-free floors): candidates within a tenth
-                             # of the best's delta BIC are not separated by this log
 
 
-def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndarray:
+def time_since_command_change(log: Log, frac: float = DEFAULTS.command_change) -> np.ndarray:
     """(T,) seconds since either command last jumped by more than ``frac`` of its range."""
     span = np.ptp(log.controls, axis=0)
     jump = np.any(np.abs(np.diff(log.controls, axis=0)) > frac * np.where(span > 0, span, 1.0), axis=1)
@@ -63,7 +55,8 @@ def command_acceleration(seg_v: np.ndarray, seg_mid: np.ndarray) -> np.ndarray:
     return out
 
 
-def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[str, Channel]:
+def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model,
+             command_change: float = DEFAULTS.command_change) -> dict[str, Channel]:
     """Whitened residual channels of the continuous graph with the INTERFACE covariates it has."""
     lay = problem.lay
     P = st.poses
@@ -71,7 +64,7 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model) -> dict[
     v = model.command.velocities(log.controls, log.dt)
     seg_v = (v[lay.seg_idx] * lay.seg_dt[:, :, None]).sum(axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
     t = log.pose_times[lay.knots[:-1]] - log.t[0]
-    since = time_since_command_change(log)[lay.knots[:-1]]
+    since = time_since_command_change(log, command_change)[lay.knots[:-1]]
     accel = command_acceleration(seg_v, t + 0.5 * lay.seg_time)
     cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "heading": P[:-1, 2], "speed": seg_v[:, 0],
            "turn_rate": seg_v[:, 2], "time_since_action_change": since, "acceleration": accel[:, 0],
@@ -120,42 +113,51 @@ def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, d
     return tried, skipped
 
 
-def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
-             proposal_options: ProposalOptions | None = None, extra_effects=()) -> Diagnosis:
+def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_effects=(), candidates=None,
+             options: DiagnoseOptions = DEFAULTS) -> Diagnosis:
     """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate
     effects: the profiled ones (:data:`casm_graph.fit.continuous.EFFECTS`) by their profile, every other
-    applicable least-squares effect fitted through its hooks on the same coarse graph."""
+    applicable least-squares effect fitted through its hooks on the same coarse graph. Each candidate is settled
+    in ``options.settle_rounds`` rounds (a latency's velocity window follows its delay from one to the next), the
+    base it is compared with alike. ``candidates``: names of the effects to try (default: every applicable one)."""
     t0 = time.perf_counter()
+    o = options
+    known = {*REGISTRY, *(c.name for c in extra_effects)}
+    unknown = sorted(set(candidates or ()) - known)
+    if unknown:
+        raise LogError(f"unknown candidate effect(s) {unknown} (known: {', '.join(sorted(known))})")
+    wanted = (lambda name: True) if candidates is None else (lambda name: name in set(candidates))
     if progress is not None:
         progress.stage("refit model", None)
     own = CT.hooked_effects(log, model, extra_effects)
-    lay = CT.layout(log, CT.FULL_KNOT_DT)
+    lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
     use = CT.gate(log, poses[log.obs_step], model, effects=own)
     problem = CT.Problem(log, lay, model, use, poses[lay.knots], own)
-    st, _ = least_squares(problem, CT.state(poses[lay.knots], model, own), max_iterations=SETTLE_ITERATIONS)
+    st, _ = least_squares(problem, CT.state(poses[lay.knots], model, own), max_iterations=o.settle_iterations)
     model = CT.with_state(model, st, own)
     full = CT.fill_in(log, model, lay.knots, st.poses)
     base = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
-    chs = channels(log, problem, st, model)
-    rep = channel_report(chs)
-    struct = structures(rep)
+    chs = channels(log, problem, st, model, o.command_change)
+    rep = channel_report(chs, o)
+    struct = structures(rep, o)
     hooked, skipped = hooked_candidates(log, model, extra_effects)
     skipped.update({n: f"needs the {' and '.join(CT.missing_channels(n, log.channels))} channel(s), which this log "
                        f"does not measure" for n in CT.EFFECTS if CT.missing_channels(n, log.channels)})
     cands = []
-    todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped]
+    hooked = [e for e in hooked if wanted(e.name)]
+    todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped and wanted(n)]
     if progress is not None and todo + hooked:
         progress.stage("candidates", len(todo) + len(hooked), unit="effects")
-    coarse = CT.layout(log, CT.COARSE_KNOT_DT)
+    coarse = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
     cuse = CT.gate(log, full[log.obs_step], model, effects=own)
     start = full[coarse.knots]
     n = CT.residual_rows(log, coarse, cuse)
     if todo or hooked:        # every candidate scored against one base, settled as they are
-        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=HOOKED_SETTLE_ROUNDS)
+        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=o.settle_rounds)
     for name in todo:
-        prof = CT.profile(log, base, name, own)
+        prof = CT.profile(log, base, name, own, lag_order_support=o.lag_order_support)
         ll, _ = CT.settled_log_likelihood(log, coarse, CT.with_effect(model, name, prof.value, prof.order), cuse,
-                                          start, own, rounds=HOOKED_SETTLE_ROUNDS)
+                                          start, own, rounds=o.settle_rounds)
         gain = float(ll - ll0)
         eff = REGISTRY[name]
         (param,) = eff.params
@@ -168,7 +170,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
         if progress is not None:
             progress.step(1)
     for e in hooked:
-        ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=HOOKED_SETTLE_ROUNDS)
+        ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds)
         gain = float(ll - ll0)
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
@@ -177,17 +179,19 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None,
         if progress is not None:
             progress.step(1)
     cands.sort(key=lambda c: c.delta_bic)
-    names = [*(n for n in CT.EFFECTS if n not in skipped), *(e.name for e in hooked)]
+    names = [*(n for n in CT.EFFECTS if n not in skipped and wanted(n)), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
-    v, words = verdict(cands, struct, {n: kinds[n].explains for n in names})
-    alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=LOOKALIKE_RELATIVE)
+    v, words = verdict(cands, struct, {n: kinds[n].explains for n in names}, o)
+    alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
+                       options=o)
     words += lookalike_words(alike)
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
                      set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, problem, model, full), proposal=proposal_for(v, chs, proposal_options))
+                     predictive=open_loop_error(log, problem, model, full), proposal=proposal_for(v, chs, o.proposal),
+                     options=o)
 
 
 def open_loop_error(log: Log, problem: CT.Problem, model: Model, poses: np.ndarray) -> dict:

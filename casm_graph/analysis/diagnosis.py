@@ -27,7 +27,7 @@ import os
 import pickle
 import signal
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -50,20 +50,43 @@ from casm_graph.models.effects.proposal import proposal_effect
 from casm_graph.models.model import Model
 
 SCHEMA = "casm-graph/diagnosis/1"
-BINS = 10
-MIN_PER_BIN = 20
-FOLDS = 3
-# The evidence a verdict needs (calibrated on effect-free simulated logs, see BENCHMARKS.md):
-BIC_SUPPORT = -10.0          # delta BIC at most this (strong evidence on Kass and Raftery's scale)
-HELDOUT_SUPPORT = 0.0        # and the held-out log-likelihood must improve
-BIC_TIE = 2.0                # delta BICs closer than this are no evidence either way: the held-out score decides
-LOOKALIKE_BIC = 6.0          # supported candidates within this of the best explain the data about equally
-STRUCTURE_P = 1e-6           # residual structure counts when this significant ...
-STRUCTURE_OMEGA2 = 0.01      # ... and it explains at least 1 % of the residual variance
-CANDIDATE_ROUNDS, CANDIDATE_ITERATIONS = 2, 8
-FOLD_ITERATIONS = 4
-HELDOUT_GATE = 0.0           # candidates with delta BIC below this get held-out folds
-FOLD_TOL = 1e-5              # relative cost change that ends a fold fit (about 0.1 nat on these logs)
+
+
+@dataclass(frozen=True)
+class DiagnoseOptions:
+    """How a diagnosis tests the residuals and weighs the candidates; recorded in diagnosis.json ``options``.
+
+    The evidence thresholds were calibrated on effect-free simulated logs (BENCHMARKS.md).
+    """
+
+    bins: int = 10                     # quantile bins of a numeric covariate
+    min_per_bin: int = 20              # fewer residuals than this make no bin (or category)
+    structure_p: float = 1e-6          # residual structure counts when this significant ...
+    structure_omega2: float = 0.01     # ... and it explains at least this share of the residual variance
+    bic_support: float = -10.0         # a verdict's delta BIC at most this (strong evidence on Kass and Raftery's scale)
+    heldout_support: float = 0.0       # and the held-out log-likelihood must improve by more than this
+    bic_tie: float = 2.0               # delta BICs closer than this are no evidence either way: the held-out score decides
+    lookalike_bic: float = 6.0         # supported candidates within this of the best explain the data about equally
+    lookalike_relative: float = 0.1    # continuous logs: also within this share of the best's delta BIC (a profile is a
+    #                                    short re-optimisation whose settling error grows with the change it makes)
+    candidate_rounds: int = 2          # action tables: noise-step rounds fitting each candidate
+    candidate_iterations: int = 8      # and LM iterations per round
+    folds: int = 3                     # time-blocked held-out folds
+    fold_iterations: int = 4           # LM iterations bounding each fold's fits
+    fold_tol: float = 1e-5             # relative cost change that ends a fold fit (about 0.1 nat on these logs)
+    heldout_gate: float = 0.0          # candidates with delta BIC below this get held-out folds
+    settle_iterations: int = 8         # continuous logs: LM iterations re-settling the model before its residuals
+    settle_rounds: int = 2             # continuous logs: noise step and LM rounds settling each candidate and the base
+    command_change: float = 0.1        # continuous logs: a command jump of this share of its range starts an "action"
+    lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
+    proposal: ProposalOptions = field(default_factory=ProposalOptions)   # the equation search of an unexplained verdict
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+DEFAULTS = DiagnoseOptions()
+BIC_SUPPORT = DEFAULTS.bic_support     # the default evidence a verdict needs, for scripts that count supported candidates
 
 
 # --------------------------------------------------------------------------- statistics
@@ -75,13 +98,13 @@ def _inflation(r_time_ordered: np.ndarray) -> float:
     return (1 + rho) / (1 - rho)
 
 
-def _groups(x: np.ndarray, categorical: bool) -> np.ndarray:
+def _groups(x: np.ndarray, categorical: bool, options: DiagnoseOptions = DEFAULTS) -> np.ndarray:
     """Group label of each row: categories with enough rows, or quantile bins of a numeric covariate."""
     if categorical:
         vals, inv, counts = np.unique(x, return_inverse=True, return_counts=True)
-        big = counts >= MIN_PER_BIN
+        big = counts >= options.min_per_bin
         return np.where(big[inv], inv, -1)
-    bins = min(BINS, max(len(x) // MIN_PER_BIN, 1))
+    bins = min(options.bins, max(len(x) // options.min_per_bin, 1))
     edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)))
     return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
 
@@ -110,7 +133,7 @@ def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]
 MOTION_CHANNELS = ("forward", "lateral", "turn")
 
 
-def covariate_tests(ch: Channel) -> list[dict]:
+def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[dict]:
     """Mean (and for sensor channels spread) dependence of a channel's residuals on each covariate, strongest first.
 
     Motion residuals are smoothing residuals: their spread follows each step's leverage (how many
@@ -125,10 +148,10 @@ def covariate_tests(ch: Channel) -> list[dict]:
     out = []
     for name, x in ch.covariates.items():
         ok = np.isfinite(x) & np.isfinite(r)
-        if ok.sum() < 3 * MIN_PER_BIN or np.ptp(x[ok]) == 0:
+        if ok.sum() < 3 * options.min_per_bin or np.ptp(x[ok]) == 0:
             continue
         cat = name in CATEGORICAL
-        g = _groups(x[ok], cat)
+        g = _groups(x[ok], cat, options)
         s_mean, p_mean = anova(r[ok], g, infl)
         if motion:
             out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"})
@@ -142,23 +165,23 @@ def covariate_tests(ch: Channel) -> list[dict]:
     return out
 
 
-def channel_report(chs: dict[str, Channel]) -> dict:
+def channel_report(chs: dict[str, Channel], options: DiagnoseOptions = DEFAULTS) -> dict:
     rep = {}
     for name, ch in chs.items():
         order = np.argsort(ch.time, kind="stable")
         rep[name] = {"rms": float(np.sqrt(np.mean(ch.residual ** 2))) if len(ch.residual) else float("nan"),
                      "rms_raw": float(np.sqrt(np.mean(ch.raw ** 2))) if len(ch.raw) else float("nan"),
                      "whiteness_p": ljung_box(ch.residual[order]),
-                     "covariates": covariate_tests(ch)}
+                     "covariates": covariate_tests(ch, options)}
     return rep
 
 
-def structures(rep: dict) -> list[dict]:
+def structures(rep: dict, options: DiagnoseOptions = DEFAULTS) -> list[dict]:
     """Material residual structure: (channel, covariate) pairs past both thresholds, strongest first."""
     found = []
     for ch, r in rep.items():
         for c in r["covariates"]:
-            if c["p"] < STRUCTURE_P and c["strength"] >= STRUCTURE_OMEGA2:
+            if c["p"] < options.structure_p and c["strength"] >= options.structure_omega2:
                 found.append({"channel": ch, **c})
     found.sort(key=lambda d: -d["strength"])
     return found
@@ -184,7 +207,7 @@ class Candidate:
                 **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped})}
 
 
-def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
+def folds(log: Log, k: int = DEFAULTS.folds) -> list[np.ndarray]:
     """Masks of the observations kept for training in each of ``k`` contiguous time blocks."""
     t = log.obs_t
     edges = np.quantile(t, np.linspace(0, 1, k + 1))
@@ -193,7 +216,7 @@ def folds(log: Log, k: int = FOLDS) -> list[np.ndarray]:
 
 
 def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
-                           detail: list | None = None, iterations: int = FOLD_ITERATIONS) -> float:
+                           detail: list | None = None, options: DiagnoseOptions = DEFAULTS) -> float:
     """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
     a block say about it.
 
@@ -207,16 +230,16 @@ def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: l
     two-minute block without sightings can stop in another basin); the fit without it is the
     training problem with effects and noise held, so the training poses are already its optimum.
     ``detail`` (a list) receives per fold the with-block log-likelihood from each start and the one without;
-    ``iterations`` bounds each fold's least squares.
+    ``options``: the folds and the bounds of each fold's least squares.
     """
     total = 0.0
     fixed = [held(_resolve(e)) for e in effects]
-    for mask in folds(log):
-        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=iterations,
-                            rel_tol=FOLD_TOL)
+    its, tol = options.fold_iterations, options.fold_tol
+    for mask in folds(log, options.folds):
+        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
         with_block, without = (
-            [effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=iterations,
-                            obs_mask=m, fit_noise=False, rel_tol=FOLD_TOL).log_likelihood
+            [effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=its,
+                            obs_mask=m, fit_noise=False, rel_tol=tol).log_likelihood
              for start in starts]
             for m, starts in ((None, (tr.poses, poses)), (mask, (tr.poses,))))
         if detail is not None:
@@ -235,15 +258,16 @@ def _resolve(extra):
     return REGISTRY[extra] if isinstance(extra, str) else extra
 
 
-def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra):
+def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
+                  options: DiagnoseOptions = DEFAULTS):
     """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
 
     Returns the candidate (held-out score still to come) and the fitted model and poses.
     """
     t0 = time.perf_counter()
     eff = instantiate([_resolve(extra)], log)[0]
-    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=CANDIDATE_ROUNDS,
-                       iterations=CANDIDATE_ITERATIONS)
+    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=options.candidate_rounds,
+                       iterations=options.candidate_iterations)
     dll = f.log_likelihood - base.log_likelihood
     dbic = -2.0 * dll + eff.free_parameters() * np.log(_n_data(log))
     c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
@@ -258,8 +282,8 @@ def _fit_task(args):
 
 def _heldout_task(args):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    log, model, poses, effects = args
-    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects])
+    log, model, poses, effects, options = args
+    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects], options=options)
 
 
 def _worker_signals():
@@ -310,22 +334,22 @@ def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list
 
 # --------------------------------------------------------------------------- verdict
 def lookalikes(cands: list[Candidate], verdict_effect: str, separated_by: dict | None = None,
-               relative: float = 0.0) -> list[dict]:
+               relative: float = 0.0, options: DiagnoseOptions = DEFAULTS) -> list[dict]:
     """The candidates that explain the data about as well as the verdict's effect: supported by BIC and within
-    ``LOOKALIKE_BIC`` of it (less than strong evidence between them on Kass and Raftery's scale), or within
+    ``options.lookalike_bic`` of it (less than strong evidence between them on Kass and Raftery's scale), or within
     ``relative`` times its own delta BIC where the scores carry an error that grows with the gain. One group
     (the verdict first) with each member's delta BIC and held-out gain and what data would tell them apart
     (``separated_by``: effect name -> the effect class's ``distinguished_by``), or none."""
     best = next((c for c in cands if c.effect == verdict_effect), None)
     if best is None:
         return []
-    within = max(LOOKALIKE_BIC, relative * abs(best.delta_bic))
-    group = [best] + [c for c in cands if c is not best and c.delta_bic <= BIC_SUPPORT
+    within = max(options.lookalike_bic, relative * abs(best.delta_bic))
+    group = [best] + [c for c in cands if c is not best and c.delta_bic <= options.bic_support
                       and abs(c.delta_bic - best.delta_bic) < within]
     if len(group) < 2:
         return []
     sep = separated_by or {}
-    closer = (f"closer than {LOOKALIKE_BIC:g}" if within == LOOKALIKE_BIC else
+    closer = (f"closer than {options.lookalike_bic:g}" if within == options.lookalike_bic else
               f"closer than {100 * relative:g} % of the best, the error these scores carry")
     return [{"effects": [c.effect for c in group], "delta_bic": [c.delta_bic for c in group], "closer_than": closer,
              "heldout_nll_drop": [c.heldout_nll_drop for c in group],
@@ -345,13 +369,14 @@ def lookalike_words(groups: list[dict]) -> list[str]:
     return out
 
 
-def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None) -> tuple[str, list[str]]:
+def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None,
+            options: DiagnoseOptions = DEFAULTS) -> tuple[str, list[str]]:
     """The verdict and the sentences that explain it.
 
     A candidate is supported when BIC supports it strongly and a second, independent line agrees:
     the held-out log-likelihood improves, or the candidate is the effect built for the strongest
     residual structure (its ``explains`` holds that channel and covariate). Among supported
-    candidates whose delta BIC is within ``BIC_TIE`` of the lowest (no evidence either way on
+    candidates whose delta BIC is within ``options.bic_tie`` of the lowest (no evidence either way on
     Kass and Raftery's scale; look-alikes such as a weak actuator lag and camera latency) the
     held-out score decides.
     """
@@ -362,12 +387,14 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     def matches(c):
         return top is not None and top in tuple(explains.get(c.effect, ()))
 
-    supported = [c for c in cands if c.delta_bic <= BIC_SUPPORT and (c.heldout_nll_drop > HELDOUT_SUPPORT or matches(c))]
+    o = options
+    supported = [c for c in cands if c.delta_bic <= o.bic_support and (c.heldout_nll_drop > o.heldout_support
+                                                                       or matches(c))]
     if supported:
         lead = min(c.delta_bic for c in supported)
-        tied = [c for c in supported if c.delta_bic - lead < BIC_TIE]
+        tied = [c for c in supported if c.delta_bic - lead < o.bic_tie]
         best = max(tied, key=lambda c: -np.inf if np.isnan(c.heldout_nll_drop) else c.heldout_nll_drop)
-        if best.heldout_nll_drop > HELDOUT_SUPPORT:
+        if best.heldout_nll_drop > o.heldout_support:
             second = f"improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats"
         else:
             second = (f"accounts for the strongest residual structure ({top[0]} residuals against {top[1]}), "
@@ -376,7 +403,7 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                      f"and {second}. {best.explanation}")
         if len(tied) > 1:
             words.append("BIC cannot tell " + " and ".join(c.effect for c in tied) + " apart (delta BIC "
-                         + ", ".join(f"{c.delta_bic:.1f}" for c in tied) + f": closer than {BIC_TIE:g}); the "
+                         + ", ".join(f"{c.delta_bic:.1f}" for c in tied) + f": closer than {o.bic_tie:g}); the "
                          "held-out log-likelihood prefers " + best.effect + " (" + ", ".join(
                              f"{c.heldout_nll_drop:.1f}" for c in tied) + " nats).")
         rest = [c for c in supported if c is not best]
@@ -391,7 +418,7 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                      f"p = {s['p']:.1e}). Something the model and the catalog lack depends on {s['name']}.")
         return f"unexplained:{s['name']}", words
     words.append("The model explains the data: no candidate effect is supported (every delta BIC above "
-                 f"{BIC_SUPPORT:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")
+                 f"{o.bic_support:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")
     return "none", words
 
 
@@ -413,6 +440,7 @@ class Diagnosis:
     before_after: dict | None = None  # the change from an earlier diagnosis (analysis.before_after.compare)
     predictive: dict = field(default_factory=dict)    # open-loop prediction error per horizon (analysis.predictive)
     proposal: dict = field(default_factory=dict)      # an effect equation for unexplained motion structure (analysis.proposal)
+    options: DiagnoseOptions = DEFAULTS               # how it was diagnosed (diagnosis.json ``options``)
     log: Log | None = None           # the log diagnosed (its report needs it)
     write_report: Callable | None = field(default=None, repr=False)   # (path, log, diagnosis): the report page
 
@@ -423,7 +451,7 @@ class Diagnosis:
                 "base": {"log_likelihood": self.base.log_likelihood, "effects": self.base.model.effects},
                 "sightings_set_aside": self.set_aside, "lookalikes": self.lookalikes,
                 "correlation": self.correlation, "predictive": self.predictive,
-                **({"proposal": self.proposal} if self.proposal else {}),
+                **({"proposal": self.proposal} if self.proposal else {}), "options": self.options.to_json(),
                 **({"before_after": self.before_after} if self.before_after else {}),
                 "seconds": round(self.seconds, 2)}
 
@@ -475,12 +503,13 @@ class Diagnosis:
 
 
 def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
-             progress=None, candidates=None, client=None, proposal_options: ProposalOptions | None = None) -> Diagnosis:
+             progress=None, candidates=None, client=None, options: DiagnoseOptions = DEFAULTS) -> Diagnosis:
     """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
 
     ``extra_effects``: user effect classes to consider besides the catalog.
     ``candidates``: names of the effects to try (default: every applicable one).
     """
+    o = options
     t0 = time.perf_counter()
     pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
     pool.update({cls.name: cls for cls in extra_effects})
@@ -494,12 +523,12 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
         progress.stage("refit model", None)
     present = of_model(model.effects, extra_effects)
     present_names = set(model.effects)
-    refit = effect_fit.fit(log, model, poses, present, rounds=CANDIDATE_ROUNDS, iterations=CANDIDATE_ITERATIONS)
+    refit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds, iterations=o.candidate_iterations)
     # the reference every candidate is scored against: the same warm-started procedure, nothing added
-    base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=CANDIDATE_ROUNDS,
-                          iterations=CANDIDATE_ITERATIONS)
+    base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=o.candidate_rounds,
+                          iterations=o.candidate_iterations)
     chs = channels(refit.problem, refit.state)
-    rep = channel_report(chs)
+    rep = channel_report(chs, o)
     todo, skipped = [], {}
     for cls in pool:
         if cls.name in present_names:
@@ -512,30 +541,31 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     wire = (lambda cls: cls.name if REGISTRY.get(cls.name) is cls else cls)
     if progress is not None:
         progress.stage("candidates", len(todo), unit="effects")
-    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls)) for cls in todo], workers, progress, client)
+    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls), o) for cls in todo], workers, progress, client)
     cands = [c for c, _, _ in fitted]
     # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
     # the verdict, and the folds are most of the cost
-    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, todo) if c.delta_bic < HELDOUT_GATE]
+    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, todo) if c.delta_bic < o.heldout_gate]
     if promising:
         if progress is not None:
             progress.stage("held-out", len(promising) + 1, unit="models")
         present_wire = [wire(type(e)) for e in base.effects]
-        held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire)]
-                         + [(log, m, p, present_wire + [wire(cls)]) for _, m, p, cls in promising],
+        held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire, o)]
+                         + [(log, m, p, present_wire + [wire(cls)], o) for _, m, p, cls in promising],
                          workers, progress, client)
         for (c, _, _, _), h in zip(promising, held[1:]):
             c.heldout_nll_drop = float(h - held[0])
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
-    struct = structures(rep)
-    v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool})
-    alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool})
+    struct = structures(rep, o)
+    v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool}, o)
+    alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o)
     return Diagnosis(rep, cands, v, words + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, proposal_options))
+                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, o.proposal),
+                     options=o)
 
 
-def proposal_for(verdict_name: str, chs: dict, options: ProposalOptions | None = None) -> dict:
+def proposal_for(verdict_name: str, chs: dict, options: ProposalOptions) -> dict:
     """The sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`, searching as ``options``
     say) when the verdict is ``unexplained:<covariate>``: structure no catalog effect explains."""
     return propose(chs, options) if verdict_name.startswith("unexplained:") else {}

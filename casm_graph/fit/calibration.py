@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from casm_graph.fit.continuous import CommandGraphOptions
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.methods.graph import GraphOptions
 from casm_graph.io.log import Log
@@ -44,12 +45,14 @@ class CalibrateOptions:
     seed: int = 0
     regions: str | None = None
     graph: GraphOptions = field(default_factory=GraphOptions)   # the action-table graph's search (graph, graph-em)
+    command_graph: CommandGraphOptions = field(default_factory=CommandGraphOptions)   # the continuous-command graph's search
     max_sensor_degree: int = 6         # the graph method raises the sensor degree up to this when the data demand
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,
                 "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions,
-                "max_sensor_degree": self.max_sensor_degree, "graph": self.graph.to_json()}
+                "max_sensor_degree": self.max_sensor_degree, "graph": self.graph.to_json(),
+                "command_graph": self.command_graph.to_json()}
 
 
 def read_truth_model(log_dir) -> dict | None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -44,13 +44,33 @@ MIN_SIGHTINGS = 10
 MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is numerical, not physical (a robot that never
                              # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
 INIT_WINDOW = 5.0            # s: the shortest log the start's windows can place
-COARSE_KNOT_DT, COARSE_ROUNDS, COARSE_ITERATIONS = 1.0, 5, 8
-COARSE_HELD_ROUNDS = 3       # coarse rounds with the maps held first: freed on the initialiser's poses, MRCLAM robot 4
-                             # (fewest sightings) ran to a speed map 131 % off (log-likelihood 22,036; 42,665 this way)
-FULL_KNOT_DT, FULL_ROUNDS, FULL_ITERATIONS = 0.25, 2, 15
-FULL_SETTLE, NOISE_TOL = 6, 0.02   # more full rounds, at most, until no noise level moves by 2 %
-REGIONAL_ROUNDS, REGIONAL_TOL = 40, 0.02      # EM rounds of regional_motion_noise's k's on the fine graph; stop when
-                                              # none moves by 2 % (slow where sightings say little about single steps)
+
+
+@dataclass(frozen=True)
+class CommandGraphOptions:
+    """How the command-model graph searches (the module docstring's coarse and fine stages); recorded in model.json
+    ``fit.options.command_graph``."""
+
+    coarse_knot_dt: float = 1.0        # s between the coarse graph's knots
+    coarse_held_rounds: int = 3        # coarse rounds with the maps held first: freed on the initialiser's poses, MRCLAM
+    #                                    robot 4 (fewest sightings) ran to a speed map 131 % off (log-likelihood 22,036;
+    #                                    42,665 this way)
+    coarse_rounds: int = 5             # free coarse rounds, each LM then the noise step
+    coarse_iterations: int = 8         # LM iterations per coarse round
+    full_knot_dt: float = 0.25         # s between the fine graph's knots
+    full_rounds: int = 2               # fine rounds
+    full_iterations: int = 15          # LM iterations per fine round
+    full_settle: int = 6               # more fine rounds, at most, until no noise level moves by ``noise_tol``
+    noise_tol: float = 0.02
+    regional_rounds: int = 40          # EM rounds of regional_motion_noise's k's on the fine graph; stop when none moves
+    regional_tol: float = 0.02         # by this share (slow where sightings say little about single steps)
+    hooked_rounds: int = 3             # fine rounds with hooked effects' parameters free (then up to ``full_settle`` more)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+DEFAULTS = CommandGraphOptions()
 
 
 # --------------------------------------------------------------------------- the graph
@@ -643,11 +663,12 @@ def noise_levels(model: Model) -> np.ndarray:
 
 def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, rounds: int, iterations: int,
                     seed: int, label: str, trace: list, stages: list, progress: Progress,
-                    freeze: bool = False, last_noise: bool = True, settle: int = 0, effects=()):
+                    freeze: bool = False, last_noise: bool = True, settle: int = 0, effects=(),
+                    noise_tol: float = DEFAULTS.noise_tol):
     """Rounds of LM, each followed by gating of outliers and re-estimating the noise levels.
 
     With ``settle`` > 0, up to that many more rounds run until no noise level moves by more than
-    ``NOISE_TOL`` (the noise step is a fixed-point iteration, slow where the sightings' leverage is
+    ``noise_tol`` (the noise step is a fixed-point iteration, slow where the sightings' leverage is
     high: a floor log's bearing sigma stood at 1.5 x its truth after two rounds, at the truth after five).
     """
     use = None
@@ -672,7 +693,7 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
             model = estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)
             use = gate(log, poses[lay.obs_knot], model, effects=effects)
             moved = float(np.max(np.abs(np.log(noise_levels(model) / before))))
-            if settle > 0 and r == rounds - 2 and moved > NOISE_TOL:
+            if settle > 0 and r == rounds - 2 and moved > noise_tol:
                 rounds, settle = rounds + 1, settle - 1
         progress.step(1)
         r += 1
@@ -709,63 +730,66 @@ class CoarseStart:
 
 
 def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
-                 start_options: W.WindowOptions | None = None) -> CoarseStart:
+                 start_options: W.WindowOptions | None = None, options: CommandGraphOptions = DEFAULTS) -> CoarseStart:
     """Global start (searched as ``start_options`` say), each candidate range slope through the held coarse
     rounds, the likeliest through the free coarse rounds: where ``fit`` and ``graph-em`` begin."""
     progress = progress or Progress()
+    o = options
     trace, stages = [], []
     progress.stage("initialise", None)
     init = initialise(log, start, start_options or W.WindowOptions())
     noise = {"motion_noise": np.asarray(start.motion_noise, float), "bearing_sigma": float(start.bearing_sigma)}
-    coarse = layout(log, COARSE_KNOT_DT)
+    coarse = layout(log, o.coarse_knot_dt)
     starts = [init, *init.alternatives]
-    progress.stage("coarse graph", len(starts) * COARSE_HELD_ROUNDS + COARSE_ROUNDS)
+    progress.stage("coarse graph", len(starts) * o.coarse_held_rounds + o.coarse_rounds)
     held = []          # each start through the held rounds: (log-likelihood, model, knot poses, iterations, trace)
     for s in starts:
         t, g = [], []
         m, kp, _, _, its, _ = optimise_rounds(log, coarse, s.model.with_(**noise), s.poses[coarse.knots],
-                                              COARSE_HELD_ROUNDS, COARSE_ITERATIONS, seed, "coarse, maps held",
-                                              t, g, progress, freeze=True)
+                                              o.coarse_held_rounds, o.coarse_iterations, seed, "coarse, maps held",
+                                              t, g, progress, freeze=True, noise_tol=o.noise_tol)
         held.append((log_likelihood(log, coarse, m, kp), m, kp, its, (t, g)))
     best = max(range(len(held)), key=lambda i: held[i][0])
     _, model, kp, _, (t, g) = held[best]
     trace += t
     stages += g
     it0 = sum(h[3] for h in held)
-    model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, kp, COARSE_ROUNDS,
-                                               COARSE_ITERATIONS, seed, "coarse", trace, stages, progress)
+    model, kp, _, _, it1, _ = optimise_rounds(log, coarse, model, kp, o.coarse_rounds, o.coarse_iterations, seed,
+                                               "coarse", trace, stages, progress, noise_tol=o.noise_tol)
     return CoarseStart(model, fill_in(log, model, coarse.knots, kp), trace, stages, it0 + it1, starts,
                        [h[0] for h in held], best)
 
 
 def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
-        marginals: bool = True, start_options: W.WindowOptions | None = None) -> Fit:
+        marginals: bool = True, start_options: W.WindowOptions | None = None,
+        options: CommandGraphOptions = DEFAULTS) -> Fit:
     """Calibrate a continuous-command log: global start (searched as ``start_options`` say), coarse graph in
-    rounds, finer graph, marginals."""
+    rounds, finer graph (as ``options`` say), marginals."""
     progress = progress or Progress()
     t0 = time.perf_counter()
+    o = options
     start = start or start_model(log)
     start_options = start_options or W.WindowOptions()
-    co = coarse_start(log, start, seed, progress, start_options)
+    co = coarse_start(log, start, seed, progress, start_options, o)
     model, poses, trace, stages, it1 = co.model, co.poses, co.trace, co.stages, co.iterations
     starts, best = co.starts, co.best
-    full = layout(log, FULL_KNOT_DT)
+    full = layout(log, o.full_knot_dt)
     it2 = 0
     if RMN.RegionalMotionNoise.name in model.effects:
-        progress.stage("regional noise", REGIONAL_ROUNDS)
-        for r in range(REGIONAL_ROUNDS):
+        progress.stage("regional noise", o.regional_rounds)
+        for r in range(o.regional_rounds):
             before = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
-            model, kp, _, _, its, _ = optimise_rounds(log, full, model, poses[full.knots], 1, FULL_ITERATIONS,
+            model, kp, _, _, its, _ = optimise_rounds(log, full, model, poses[full.knots], 1, o.full_iterations,
                                                       seed + 200 + r, "regional", trace, stages, progress)
             it2 += its
             poses = fill_in(log, model, full.knots, kp)
             after = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
-            if np.max(np.abs(np.log(after / before))) < REGIONAL_TOL:
+            if np.max(np.abs(np.log(after / before))) < o.regional_tol:
                 break
-    progress.stage("full graph", FULL_ROUNDS)
+    progress.stage("full graph", o.full_rounds)
     model, kp, problem, st, its, converged = optimise_rounds(
-        log, full, model, poses[full.knots], FULL_ROUNDS, FULL_ITERATIONS, seed + 100, "full", trace, stages,
-        progress, last_noise=False, settle=FULL_SETTLE)
+        log, full, model, poses[full.knots], o.full_rounds, o.full_iterations, seed + 100, "full", trace, stages,
+        progress, last_noise=False, settle=o.full_settle, noise_tol=o.noise_tol)
     it2 += its
     poses = fill_in(log, model, full.knots, kp)
     pose_std = np.full_like(poses, np.nan)
@@ -778,7 +802,7 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": "graph", "iterations": it1 + it2,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": ll,
-                             "converged": converged, "knot_dt": FULL_KNOT_DT,
+                             "converged": converged, "knot_dt": o.full_knot_dt,
                              "start_options": W.options_json(start_options),
                              "start_slopes": [[round(s.slope, 6), round(h, 1)] for s, h in zip(starts, co.held)
                                               if np.isfinite(s.slope)],
@@ -822,7 +846,6 @@ PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
 PROFILE_ITERATIONS = 8
 LAG_ORDERS = (1, 2)          # the actuator lag's family: one first-order stage, or two (a critically damped drive),
                              # the second tried when the first is strongly supported and kept when BIC prefers it
-LAG_ORDER_SUPPORT = -10.0    # delta BIC of the one-stage lag below which the two-stage one is profiled too
 
 
 NEEDS = {"lens_distortion": ("reading", "bearing")}   # the sensor channels an effect's physics needs (a lens: a
@@ -907,7 +930,7 @@ class Profile:
         return float(-2 * self.gain + self.order * np.log(self.n_data))
 
 
-def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
+def profile(log: Log, fit: Fit, name: str, effects=(), lag_order_support: float = -10.0) -> Profile:
     """Profile one continuous-log effect's parameter on the coarse graph of a fitted log (with the hooked ``effects``
     the model already has).
 
@@ -915,15 +938,16 @@ def profile(log: Log, fit: Fit, name: str, effects=()) -> Profile:
     map and polynomial re-settle (LM from ``fit``'s own), moves each noise level to its
     maximum-likelihood value and re-settles once more; its value is the log-likelihood with the
     noise levels concentrated out, so two settings compare as a likelihood ratio on the same data.
-    A grid brackets the maximum, Brent's bounded search refines it. An actuator lag strongly supported
-    with one stage is profiled with two as well, and the order BIC prefers (one more parameter) is kept.
+    A grid brackets the maximum, Brent's bounded search refines it. An actuator lag supported with one stage
+    (delta BIC below ``lag_order_support``) is profiled with two as well, and the order BIC prefers (one more
+    parameter) is kept.
     """
-    lay = layout(log, COARSE_KNOT_DT)
+    lay = layout(log, DEFAULTS.coarse_knot_dt)
     use = gate(log, fit.poses[log.obs_step], fit.model, effects=effects)
     start = fit.poses[lay.knots]
     n = residual_rows(log, lay, use)
     best = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=1)
-    if name == "actuator_lag" and best.delta_bic < LAG_ORDER_SUPPORT:
+    if name == "actuator_lag" and best.delta_bic < lag_order_support:
         for order in LAG_ORDERS[1:]:
             other = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=order)
             if other.delta_bic < best.delta_bic:
@@ -1021,24 +1045,22 @@ def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
     return float(out - np.sum(np.log(problem.r_scale)))
 
 
-HOOKED_ROUNDS = 3       # rounds of the fine graph with the hooked effects' parameters free (then up to FULL_SETTLE
-                        # more until the noise levels settle), from the fit without them
-
-
 def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress | None = None,
-               marginals: bool = True) -> Fit:
+               marginals: bool = True, options: CommandGraphOptions = DEFAULTS) -> Fit:
     """``base`` refitted with ``effects`` acting through their hooks (velocity, geometry, reading): their
-    least-squares parameters join the command map in the fine graph, warm-started at their starts."""
+    least-squares parameters join the command map in the fine graph, warm-started at their starts, for
+    ``options.hooked_rounds`` rounds and then until the noise levels settle."""
     progress = progress or Progress()
     t0 = time.perf_counter()
+    o = options
     effects = augmented.instantiate(effects, log)
-    full = layout(log, FULL_KNOT_DT)
+    full = layout(log, o.full_knot_dt)
     model = with_state(base.model, state(base.poses[full.knots], base.model, effects), effects)
     trace, stages = [], []
-    progress.stage("effects", HOOKED_ROUNDS)
+    progress.stage("effects", o.hooked_rounds)
     model, kp, problem, st, its, converged = optimise_rounds(
-        log, full, model, base.poses[full.knots], HOOKED_ROUNDS, FULL_ITERATIONS, seed + 300, "effects", trace,
-        stages, progress, last_noise=False, settle=FULL_SETTLE, effects=effects)
+        log, full, model, base.poses[full.knots], o.hooked_rounds, o.full_iterations, seed + 300, "effects", trace,
+        stages, progress, last_noise=False, settle=o.full_settle, effects=effects, noise_tol=o.noise_tol)
     poses = fill_in(log, model, full.knots, kp)
     pose_std, effect_std = np.full_like(poses, np.nan), {}
     if marginals:
@@ -1056,7 +1078,7 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
 
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
                      progress: Progress | None = None, marginals: bool = True,
-                     regions: RMN.Regions | None = None) -> Fit:
+                     regions: RMN.Regions | None = None, options: CommandGraphOptions = DEFAULTS) -> Fit:
     """``fit`` with effects (names, classes or instances): fit without them, then for each profiled effect in
     turn profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
     profiled: its regions (``regions``, default a 3 x 2 grid around the landmarks) start from the
@@ -1069,7 +1091,7 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     profiled = [n for n in named if n in EFFECTS]
     noisy = [n for n in named if n in NOISE_EFFECTS]
     hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
-    out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects)
+    out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options)
     profiles = []
     for i, name in enumerate(profiled):
         progress.stage(f"{name} profile", None)
@@ -1077,13 +1099,13 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         profiles.append(prof)
         start = with_effect(start, name, prof.value, prof.order)
         out = fit(log, start, seed=seed, progress=progress,
-                  marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked)
+                  marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked, options=options)
     if noisy:
         before = out.log_likelihood
         start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked)
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked, options=options)
         out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
     if hooked:
-        out = fit_hooked(log, out, hooked, seed=seed, progress=progress, marginals=marginals)
+        out = fit_hooked(log, out, hooked, seed=seed, progress=progress, marginals=marginals, options=options)
     out.notes["profiles"] = profiles
     return out

@@ -135,9 +135,9 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
             fit = METHODS[options.method](log, start, seed=options.seed, progress=progress)
         elif classes:
             fit = continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
-                                              progress=progress, regions=grid)
+                                              progress=progress, regions=grid, options=options.command_graph)
         else:
-            fit = continuous.fit(log, start, seed=options.seed, progress=progress)
+            fit = continuous.fit(log, start, seed=options.seed, progress=progress, options=options.command_graph)
 
         def write_report(path: Path, cal: Calibration) -> None:
             command_report.calibration(path, log, fit, cal=cal)

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from casm_graph.analysis.before_after import compare, load_before
 from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continuous
-from casm_graph.analysis.diagnosis import Diagnosis
+from casm_graph.analysis.diagnosis import DEFAULTS, DiagnoseOptions, Diagnosis
 from casm_graph.analysis.diagnosis import diagnose as diagnose_table
 from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit import continuous
@@ -44,7 +45,7 @@ def check_compatible(log: Log, model: Model, source: str) -> None:
 
 def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
              progress=None, poses: np.ndarray | None = None, client=None, before=None,
-             proposal_options: ProposalOptions | None = None) -> Diagnosis:
+             proposal_options: ProposalOptions | None = None, options: DiagnoseOptions = DEFAULTS) -> Diagnosis:
     """Where ``calibration`` fails on ``log`` and which effect is missing; in memory (``save`` writes DIAG).
 
     ``calibration`` is a :class:`Calibration` (its trajectory is the start) or a :class:`Model` (then
@@ -52,8 +53,11 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     ``client``: a Dask ``distributed.Client`` to fit the candidates and folds on (default: a local process pool);
     ``before``: an earlier diagnosis of the log (a :class:`Diagnosis`, its DIAG directory, diagnosis.json or its dict) to
     show the change against (``before_after`` in diagnosis.json, a table and figure in the report);
-    ``proposal_options``: how an unexplained verdict's equation is searched (recorded with the proposal).
+    ``options``: how the residuals are tested and the candidates weighed (recorded in diagnosis.json);
+    ``proposal_options``, when given, replaces ``options.proposal`` (how an unexplained verdict's equation is searched).
     """
+    if proposal_options is not None:
+        options = replace(options, proposal=proposal_options)
     if before is not None and not isinstance(before, (Diagnosis, dict)):
         before = load_before(before)                 # read first: a bad path fails before the computation
     if isinstance(calibration, Calibration):
@@ -76,8 +80,8 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
             if progress is not None:
                 progress.stage("start trajectory", None)
             poses = continuous.fit(log, model, marginals=False).poses
-        diag = diagnose_continuous(log, model, poses, progress=progress, proposal_options=proposal_options,
-                                   extra_effects=extra_effects)
+        diag = diagnose_continuous(log, model, poses, progress=progress, extra_effects=extra_effects,
+                                   candidates=candidates, options=options)
     else:
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
@@ -87,8 +91,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
                 progress.stage("start trajectory", None)
             poses = ekfs_fit(log, model, max_iterations=1).poses
         diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
-                              proposal_options=proposal_options,
-                              candidates=candidates, client=client)
+                              candidates=candidates, client=client, options=options)
     diag.log, diag.write_report = log, report.diagnosis
     if before is not None:
         diag.before_after = compare(before.to_json() if isinstance(before, Diagnosis) else before, diag.to_json())

@@ -64,7 +64,7 @@ def velocity_errors(model: Model, truth: dict | None) -> np.ndarray | None:
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         max_iterations: int = MAX_ITERATIONS, patience: int = PATIENCE, truth: dict | None = None,
         start_pose: tuple | None = None, learn_action_noise: bool = False, from_initialiser: bool = False,
-        overrelax: float = 1.0, name: str = "ekfs-em") -> Fit:
+        overrelax: float = 1.0, outlier_m2: float = OUTLIER_M2, name: str = "ekfs-em") -> Fit:
     """Calibrate ``log`` with EKFS-EM from the paper's start; ``truth`` only records errors per iteration
     (table RMS, and the forward filter's heading RMS when the log has a trajectory).
 
@@ -72,7 +72,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     Sigma_A (diagonal, shared by the actions) to the expected squared deviation of each step's
     displacement from its action's new mean under the pairwise posterior, as EM would.
     ``from_initialiser`` departs from the paper's zero-velocity start: the table and the polynomial
-    start where the graph methods start, from the log-only initialiser. ``name`` is the method recorded in
+    start where the graph methods start, from the log-only initialiser. ``outlier_m2``: the squared Mahalanobis
+    innovation beyond which a sighting is pruned at the first iteration. ``name`` is the method recorded in
     the model's fit section.
     """
     progress = progress or Progress()
@@ -107,7 +108,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         u = model.step_velocities(log) * dt[:, None]
         mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         if it == 0:
-            use = ~(m2 > OUTLIER_M2)
+            use = ~(m2 > outlier_m2)
             mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         model = model.with_(reading_poly=poly.copy(), reading_sigma=s_r, bearing_sigma=s_b, motion_noise=sig.copy())
         history["log_likelihood"].append(float(ll))
@@ -163,7 +164,10 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": name, "iterations": it + 1, "best_iteration": best_it + 1,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": float(ll),
-                             "converged": bool(it - best_it >= patience), "outliers_pruned": int((~use).sum())})
+                             "converged": bool(it - best_it >= patience), "outliers_pruned": int((~use).sum()),
+                             "ekfs": {"max_iterations": max_iterations, "patience": patience,
+                                         "outlier_m2": outlier_m2, "learn_action_noise": learn_action_noise,
+                                         "from_initialiser": from_initialiser, "overrelax": overrelax}})
     ll_hist = history["log_likelihood"]
     return Fit(model=model, poses=mu_g, pose_std=pose_std, cost=[-x for x in ll_hist],
                stages=["ekfs-em"] * len(ll_hist), iterations=it + 1, converged=model.fit["converged"],
