@@ -274,7 +274,7 @@ def test_dask_pool_runs_emcee_like_serial():
 
 @pytest.mark.science
 def test_fleet_drift_flags_exactly_the_wearing_robots(tmp_path):
-    robots, days, wearing, minutes = (20, 5, 2, 3) if FULL else (3, 3, 1, 3)
+    robots, days, wearing, minutes = (20, 5, 2, 3) if FULL else (3, 3, 1, 2)
     logs, out = tmp_path / "fleet", tmp_path / "out"
     assert cli.main(["simulate-fleet", logs, "--robots", robots, "--days", days, "--wearing", wearing,
                      "--minutes", minutes, "--seed", 1]) == 0

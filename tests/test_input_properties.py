@@ -256,7 +256,9 @@ def test_calibrate_gives_a_sane_model_or_one_line(data):
             text = (out / "model.json").read_text()
             assert "NaN" not in text and "Infinity" not in text
             m = json.loads(text)
-            assert m["sensor_model"]["reading_sigma"] > 0 and m["sensor_model"]["bearing_sigma"] > 0
+            sensor = m["sensor_model"]
+            assert sensor["channels"] and all(sensor[f"{ch}_sigma"] > 0 for ch in sensor["channels"])
+            assert all(sensor[f"{ch}_sigma"] is None for ch in {"reading", "bearing"} - set(sensor["channels"]))
         else:
             assert code == 2, stderr
             assert len(stderr.strip().splitlines()) == 1, stderr

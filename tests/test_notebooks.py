@@ -16,7 +16,7 @@ from .conftest import FULL
 
 NOTEBOOKS = sorted((Path(__file__).parent.parent / "notebooks").glob("*.ipynb"))
 IN_CI = {"00_quickstart.ipynb"}
-REDUCED = {"CASM_NB_MINUTES": "2", "CASM_NB_UNC_STEPS": "100", "CASM_NB_TRIALS": "1",
+REDUCED = {"CASM_NB_MINUTES": "1.5", "CASM_NB_UNC_STEPS": "100", "CASM_NB_TRIALS": "1",
            "CASM_NB_CANDIDATES": "1"}
 
 

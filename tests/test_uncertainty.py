@@ -163,7 +163,7 @@ def bundle(tmp_path_factory):
 def test_cli_writes_posterior_report_and_model(bundle, capsys):
     out = bundle / "unc"
     rc = main(["uncertainty", str(bundle / "log"), "--model", str(bundle / "run" / "model.json"), "--out", str(out),
-               "--max-steps", "300", "--prior", "bearing_sigma=loguniform:0.05:5", "--quiet"])
+               "--walkers", "12", "--max-steps", "120", "--prior", "bearing_sigma=loguniform:0.05:5", "--quiet"])
     assert rc == 0
     err = capsys.readouterr().err
     post = json.loads((out / "posterior.json").read_text())
@@ -177,7 +177,7 @@ def test_cli_writes_posterior_report_and_model(bundle, capsys):
     s = post["sampler"]
     assert {"walkers", "steps", "burn_in", "acceptance_fraction", "autocorr_time"} <= set(s)
     assert set(s["autocorr_time"]) == set(names) and all(np.isfinite(list(s["autocorr_time"].values())))
-    assert s["steps"] == 300 and s["too_short"] and "too short" in err      # 300 steps < 50 tau: warned
+    assert s["walkers"] == 12 and s["steps"] == 120 and s["too_short"] and "too short" in err   # < 50 tau: warned
     m = json.loads((out / "model.json").read_text())
     assert all(v is not None for row in m["action_model"]["std"].values() for v in row)
     band = m["sensor_model"]["reading_band"]
