@@ -21,7 +21,8 @@ import numpy as np
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, channel_report,
-                                           lookalike_words, lookalikes, proposal_for, structures, verdict)
+                                           chosen_candidates, lookalike_words, lookalikes, proposal_for, structures,
+                                           verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel
@@ -122,11 +123,10 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     base it is compared with alike. ``candidates``: names of the effects to try (default: every applicable one)."""
     t0 = time.perf_counter()
     o = options
-    known = {*REGISTRY, *(c.name for c in extra_effects)}
-    unknown = sorted(set(candidates or ()) - known)
-    if unknown:
-        raise LogError(f"unknown candidate effect(s) {unknown} (known: {', '.join(sorted(known))})")
-    wanted = (lambda name: True) if candidates is None else (lambda name: name in set(candidates))
+    chosen = chosen_candidates(candidates, extra_effects)
+
+    def wanted(name: str) -> bool:
+        return chosen is None or name in chosen
     if progress is not None:
         progress.stage("refit model", None)
     own = CT.hooked_effects(log, model, extra_effects)

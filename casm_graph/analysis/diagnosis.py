@@ -513,11 +513,9 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     t0 = time.perf_counter()
     pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
     pool.update({cls.name: cls for cls in extra_effects})
-    if candidates is not None:                  # the user narrows the search to these effects
-        unknown = sorted(set(candidates) - set(pool))
-        if unknown:
-            raise LogError(f"unknown candidate effect(s) {unknown} (known: {', '.join(sorted(pool))})")
-        pool = {n: c for n, c in pool.items() if n in set(candidates)}
+    chosen = chosen_candidates(candidates, extra_effects)
+    if chosen is not None:                      # the user narrows the search to these effects
+        pool = {n: c for n, c in pool.items() if n in chosen}
     pool = list(pool.values())
     if progress is not None:
         progress.stage("refit model", None)
@@ -563,6 +561,17 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
                      skipped, correlation=correlation(chs), lookalikes=alike,
                      predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, o.proposal),
                      options=o)
+
+
+def chosen_candidates(candidates, extra_effects=()) -> set | None:
+    """The effect names a diagnosis is asked to try (None: every applicable one); an unknown name is one LogError."""
+    if candidates is None:
+        return None
+    known = {*REGISTRY, *(cls.name for cls in extra_effects)}
+    unknown = sorted(set(candidates) - known)
+    if unknown:
+        raise LogError(f"unknown candidate effect(s) {unknown} (known: {', '.join(sorted(known))})")
+    return set(candidates)
 
 
 def proposal_for(verdict_name: str, chs: dict, options: ProposalOptions) -> dict:

@@ -247,6 +247,15 @@ def _cholesky_solve(H, g):
 
 
 @njit(cache=True)
+def _spd_solve(H, g):
+    """H^-1 g by :func:`_cholesky_solve`, or LAPACK's general solve where H is not positive definite to round-off."""
+    x = _cholesky_solve(H, g)
+    if not np.all(np.isfinite(x)):
+        x = np.linalg.solve(H, g)
+    return x
+
+
+@njit(cache=True)
 def _normal_equations(z, a, Ia, Lk, ek, u, w):
     """Gauss-Newton system (H, grad) of :func:`_pair_cost` at ``z``, with d(z) and its Jacobian L."""
     d, L = _d_and_L(z)
@@ -265,8 +274,9 @@ def _normal_equations(z, a, Ia, Lk, ek, u, w):
         grad[i, 0] = gi
     for i in range(3):
         for j in range(3):
-            H[i, j + 0] += Ia[i, j] if j >= i else 0.0
-            H[i + 3, j + 3] += Lk[i, j] if j >= i else 0.0
+            if j >= i:                               # the upper triangle; mirrored below
+                H[i, j] += Ia[i, j]
+                H[i + 3, j + 3] += Lk[i, j]
             grad[i, 0] += Ia[i, j] * (z[j] - a[j])
             grad[i + 3, 0] += Lk[i, j] * z[j + 3]
         grad[i + 3, 0] -= ek[i]
@@ -309,9 +319,7 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True
         moved = False
         for it in range(iterations):
             H, grad, d, L = _normal_equations(z, a, Ia, Lk, ek, u_prev[k], w)
-            step = -_cholesky_solve(H, grad)[:, 0]
-            if not np.all(np.isfinite(step)):       # H not positive definite to round-off: LAPACK's general solve
-                step = -np.linalg.solve(H, grad[:, 0])
+            step = -_spd_solve(H, grad)[:, 0]
             znew = z + step
             c = _pair_cost(znew, a, Ia, Lk, ek, u_prev[k], w)
             if it > 0 and c >= cost:
@@ -322,9 +330,7 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True
             z = znew
         out[k] = pred
         if variance and moved:
-            X = _cholesky_solve(H_best, np.ascontiguousarray(L_best.T))
-            if not np.all(np.isfinite(X)):
-                X = np.linalg.solve(H_best, np.ascontiguousarray(L_best.T))
+            X = _spd_solve(H_best, np.ascontiguousarray(L_best.T))
             for r in range(3):
                 v = 0.0
                 for i in range(6):

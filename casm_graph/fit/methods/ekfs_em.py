@@ -166,8 +166,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": float(ll),
                              "converged": bool(it - best_it >= patience), "outliers_pruned": int((~use).sum()),
                              "ekfs": {"max_iterations": max_iterations, "patience": patience,
-                                         "outlier_m2": outlier_m2, "learn_action_noise": learn_action_noise,
-                                         "from_initialiser": from_initialiser, "overrelax": overrelax}})
+                                      "outlier_m2": outlier_m2, "learn_action_noise": learn_action_noise,
+                                      "from_initialiser": from_initialiser, "overrelax": overrelax}})
     ll_hist = history["log_likelihood"]
     return Fit(model=model, poses=mu_g, pose_std=pose_std, cost=[-x for x in ll_hist],
                stages=["ekfs-em"] * len(ll_hist), iterations=it + 1, converged=model.fit["converged"],
