@@ -7,6 +7,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from casm_graph.models.effects import REGISTRY  # noqa: E402
 from casm_graph.sim.aibo import SimConfig, simulate, write  # noqa: E402
 
 FULL = os.environ.get("CASM_FULL") == "1"
@@ -50,3 +51,19 @@ def short_bundle(tmp_path_factory):
     log, truth = simulate(SimConfig(minutes=2, seed=11))
     write(log, truth, d)
     return d, log, truth
+
+
+def position_rms(cal, log) -> float:
+    """Position RMS (m) of a calibration's trajectory against the log's truth."""
+    tr = cal.trajectory
+    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
+
+
+def patch_contrast(entry: dict, log, truth: dict) -> float:
+    """Mean slow-down of a fitted surface_friction field on the world's patch minus off it, along the true path."""
+    field = REGISTRY["surface_friction"](log, extent=entry["extent"])
+    slow = field.slow(np.array([entry[p] for p in field.params]), log.truth[:, 1:3])
+    p = truth["geometry"]["patch"]
+    x, y = log.truth[:, 1], log.truth[:, 2]
+    on = (x >= p["xmin"]) & (x <= p["xmax"]) & (y >= p["ymin"]) & (y <= p["ymax"])
+    return float(slow[on].mean() - slow[~on].mean())

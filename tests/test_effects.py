@@ -3,11 +3,13 @@ import gtsam
 import numpy as np
 import pytest
 
+import casm_graph as cg
 from casm_graph.fit import effect_fit
 from casm_graph.fit.solve import _damping
 from casm_graph.graph import augmented as AU
 from casm_graph.models.effects import REGISTRY, catalog
 from casm_graph.models.effects.base import held
+from casm_graph.models.effects.surface_friction import NODES, bilinear, extent_around
 from casm_graph.models.model import paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 
@@ -118,3 +120,34 @@ def test_held_effect_keeps_its_parameters_while_the_rest_is_fitted(short):
     assert fixed.model.reading_sigma == m.reading_sigma and np.all(fixed.model.motion_noise == m.motion_noise)
     assert np.abs(fixed.model.velocities - m.velocities).max() > 1e-6
     assert np.abs(fixed.poses - poses).max() > 1e-3
+
+
+def test_friction_field_is_bilinear_through_its_nodes_and_clamped_outside():
+    ext = (-2.0, -1.0, 2.0, 1.0)
+    rng = np.random.default_rng(0)
+    xy = np.column_stack([rng.uniform(-3, 3, 500), rng.uniform(-2, 2, 500)])
+    W = bilinear(xy, ext)
+    np.testing.assert_allclose(W.sum(axis=1), 1.0)
+    gx, gy = np.meshgrid(np.linspace(-2, 2, NODES), np.linspace(-1, 1, NODES))
+    plane = (0.3 * gx - 0.2 * gy + 0.1).ravel()                      # a plane through the nodes is reproduced
+    inside = np.clip(xy, [-2, -1], [2, 1])
+    np.testing.assert_allclose(W @ plane, 0.3 * inside[:, 0] - 0.2 * inside[:, 1] + 0.1, atol=1e-12)
+    x0, y0, x1, y1 = extent_around(xy)
+    assert x0 < np.percentile(xy[:, 0], 1) and x1 > np.percentile(xy[:, 0], 99) and y1 - y0 < 4.5
+
+
+def test_friction_field_extent_is_recorded_restored_and_drawn(tmp_path):
+    """The simulator's field is the playing field; a fit records its own extent, a refit takes it back."""
+    log, truth = simulate(SimConfig(minutes=1, seed=5, effects={"surface_friction": 0.2}))
+    t = truth["effects"]["surface_friction"]
+    assert t["extent"] == [-2.7, -1.8, 2.7, 1.8] and t[f"slow_{NODES - 1}_0"] == 0.2 and t["slow_0_0"] == 0.0
+    cal = cg.calibrate(log, effects=["surface_friction"], seed=5)
+    entry = cal.model.effects["surface_friction"]
+    x0, y0, x1, y1 = entry["extent"]
+    tr = cal.trajectory
+    assert x0 <= np.percentile(tr["x"], 1) and x1 >= np.percentile(tr["x"], 99) and y1 > y0
+    again = AU.instantiate(["surface_friction"], log)
+    AU.theta_from_model(again, cal.model)
+    assert list(again[0].extent) == entry["extent"]
+    cal.save(tmp_path / "run")
+    assert "Surface friction on the field" in (tmp_path / "run" / "report.html").read_text()

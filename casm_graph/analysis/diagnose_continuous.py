@@ -25,7 +25,7 @@ from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions,
                                            verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
-from casm_graph.fit.residuals import Channel
+from casm_graph.fit.residuals import Channel, place
 from casm_graph.fit.solve import least_squares
 from casm_graph.io.log import Log, LogError
 from casm_graph.models.effects import REGISTRY
@@ -67,7 +67,8 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model,
     t = log.pose_times[lay.knots[:-1]] - log.t[0]
     since = time_since_command_change(log, command_change)[lay.knots[:-1]]
     accel = command_acceleration(seg_v, t + 0.5 * lay.seg_time)
-    cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "heading": P[:-1, 2], "speed": seg_v[:, 0],
+    cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "place": place(P[:-1]), "heading": P[:-1, 2],
+           "speed": seg_v[:, 0],
            "turn_rate": seg_v[:, 2], "time_since_action_change": since, "acceleration": accel[:, 0],
            "turn_acceleration": accel[:, 2]}
     out = {}

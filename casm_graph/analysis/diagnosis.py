@@ -63,6 +63,8 @@ class DiagnoseOptions:
     min_per_bin: int = 20              # fewer residuals than this make no bin (or category)
     structure_p: float = 1e-6          # residual structure counts when this significant ...
     structure_omega2: float = 0.01     # ... and it explains at least this share of the residual variance
+    structure_share: float = 0.5       # a candidate is built for the structure when it explains one at least this
+                                       # share as strong as the strongest (an effect shows in several channels)
     bic_support: float = -10.0         # a verdict's delta BIC at most this (strong evidence on Kass and Raftery's scale)
     heldout_support: float = 0.0       # and the held-out log-likelihood must improve by more than this
     bic_tie: float = 2.0               # delta BICs closer than this are no evidence either way: the held-out score decides
@@ -374,20 +376,21 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     """The verdict and the sentences that explain it.
 
     A candidate is supported when BIC supports it strongly and a second, independent line agrees:
-    the held-out log-likelihood improves, or the candidate is the effect built for the strongest
-    residual structure (its ``explains`` holds that channel and covariate). Among supported
+    the held-out log-likelihood improves, or the candidate is the effect built for a strong residual
+    structure (its ``explains`` holds the channel and covariate of one at least ``options.structure_share``
+    as strong as the strongest). Among supported
     candidates whose delta BIC is within ``options.bic_tie`` of the lowest (no evidence either way on
     Kass and Raftery's scale; look-alikes such as a weak actuator lag and camera latency) the
     held-out score decides.
     """
     words = []
     explains = explains or {}
-    top = (structure[0]["channel"], structure[0]["name"]) if structure else None
+    o = options
+    strong = [s for s in structure if s["strength"] >= o.structure_share * structure[0]["strength"]]
 
     def matches(c):
-        return top is not None and top in tuple(explains.get(c.effect, ()))
+        return any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
 
-    o = options
     supported = [c for c in cands if c.delta_bic <= o.bic_support and (c.heldout_nll_drop > o.heldout_support
                                                                        or matches(c))]
     if supported:
@@ -397,7 +400,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
         if best.heldout_nll_drop > o.heldout_support:
             second = f"improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats"
         else:
-            second = (f"accounts for the strongest residual structure ({top[0]} residuals against {top[1]}), "
+            s = next(s for s in strong if (s["channel"], s["name"]) in tuple(explains.get(best.effect, ())))
+            rank = "the strongest" if s is structure[0] else "a strong"
+            second = (f"accounts for {rank} residual structure ({s['channel']} residuals against {s['name']}), "
                       f"though the held-out score does not improve ({best.heldout_nll_drop:.1f} nats)")
         words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
                      f"and {second}. {best.explanation}")

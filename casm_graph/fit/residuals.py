@@ -15,6 +15,7 @@ from scipy import stats
 from casm_graph.graph.augmented import AState, EffectProblem
 from casm_graph.graph.table import Layout
 from casm_graph.io.log import Log, wrap
+from casm_graph.models.effects.surface_friction import NODES, extent_around
 from casm_graph.models.model import Model
 
 LJUNG_BOX_LAGS = 20
@@ -75,10 +76,19 @@ def ljung_box(r: np.ndarray, lags: int = LJUNG_BOX_LAGS) -> float:
     return float(stats.chi2.sf(q, lags))
 
 
-MOTION_COVARIATES = ("time", "x", "y", "heading", "speed", "turn_rate", "time_since_action_change", "action")
+MOTION_COVARIATES = ("time", "x", "y", "place", "heading", "speed", "turn_rate", "time_since_action_change", "action")
 SENSOR_COVARIATES = ("time", "x", "y", "heading", "speed", "turn_rate", "distance", "bearing",
                      "image_angle", "landmark")
-CATEGORICAL = ("action", "landmark")
+CATEGORICAL = ("action", "landmark", "place")
+
+
+def place(xy: np.ndarray) -> np.ndarray:
+    """Where on the floor each (x, y) is: the cell of a grid over the visited area (the friction field's grid),
+    a categorical covariate that finds a patch a split along x or y alone dilutes."""
+    x0, y0, x1, y1 = extent_around(xy)
+    i = np.clip(((xy[:, 0] - x0) / (x1 - x0) * NODES).astype(int), 0, NODES - 1)
+    j = np.clip(((xy[:, 1] - y0) / (y1 - y0) * NODES).astype(int), 0, NODES - 1)
+    return (j * NODES + i).astype(float)
 
 
 @dataclass
@@ -100,7 +110,8 @@ def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
     v = problem.step_velocity(st)
     P = st.poses[:-1]
     t = problem.m_ctx["t"]
-    cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "heading": P[:, 2], "speed": np.hypot(v[:, 0], v[:, 1]),
+    cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "place": place(P), "heading": P[:, 2],
+           "speed": np.hypot(v[:, 0], v[:, 1]),
            "turn_rate": v[:, 2], "time_since_action_change": problem.m_ctx["since"],
            "action": log.action.astype(float)}
     commanded = st.velocities[problem.lay.seg_action]

@@ -69,10 +69,12 @@ def instantiate(names_or_effects, log: Log) -> list[Effect]:
 
 
 def theta_from_model(effects: list[Effect], model: Model) -> np.ndarray:
-    """Effect parameters stored in ``model.effects``, or each effect's start where absent."""
+    """Effect parameters stored in ``model.effects``, or each effect's start where absent (what else an entry
+    records, each effect takes back through ``restore``)."""
     vals = []
     for e in effects:
         stored = model.effects.get(e.name, {})
+        e.restore(stored)
         vals.extend(float(stored.get(p, s)) for p, s in zip(e.params, e.start))
     return np.array(vals, float)
 

@@ -41,8 +41,9 @@ def model_error(model: Model, truth: dict) -> dict:
 
 def effect_error(fitted: dict, true: dict) -> float:
     """Relative error of the true effects' parameters (0 when no effect is hidden; 1 when none is fitted)."""
-    p = np.array([v for name in true for v in true[name].values()], float)
-    q = np.array([fitted.get(name, {}).get(k, 0.0) for name in true for k in true[name]], float)
+    keys = [(name, k) for name in true for k, v in true[name].items() if isinstance(v, (int, float))]
+    p = np.array([true[name][k] for name, k in keys], float)
+    q = np.array([fitted.get(name, {}).get(k, 0.0) for name, k in keys], float)
     n = np.linalg.norm(p)
     return float(np.linalg.norm(q - p) / n) if n > 0 else 0.0
 

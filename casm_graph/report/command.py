@@ -11,7 +11,8 @@ from casm_graph.fit import continuous
 from casm_graph.fit.methods.base import Fit
 from casm_graph.io.log import Log
 from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
-from casm_graph.report.pages import STYLE, cost_figure, fit_quality, png, sensor_figure, subplots, trajectory_figure
+from casm_graph.report.pages import (STYLE, cost_figure, effect_panels, fit_quality, png, sensor_figure, subplots,
+                                     trajectory_figure)
 
 
 def maps_figure(log: Log, fit: Fit, reference=None):
@@ -117,7 +118,7 @@ def calibration(path: Path, log: Log, fit: Fit, evaluation: dict | None = None, 
         others = {"identity-model graph": evaluation["_trajectories"]["identity_graph"]}
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
     body = ["<h1>casm-graph calibration (continuous commands)</h1>", fit_quality(cal) if cal is not None else "",
-            f"<h2>The fit</h2><table>{info}</table>",
+            f"<h2>The fit</h2><table>{info}</table>", *effect_panels(fit),
             "<h2>Command maps</h2>", png(maps_figure(log, fit, ref)),
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, None)),
             "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, fit.pose_std, others)),

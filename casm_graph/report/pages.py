@@ -16,6 +16,7 @@ from casm_graph.fit import residuals
 from casm_graph.fit.methods.base import Fit
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log
+from casm_graph.models.effects.surface_friction import NODES, bilinear
 from casm_graph.sim.aibo import true_reading
 
 STYLE = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -83,6 +84,30 @@ def trajectory_figure(log: Log, poses: np.ndarray, std: np.ndarray, others: dict
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8)
     return fig
+
+
+def friction_figure(fit: Fit):
+    """The fitted surface_friction field (share of speed lost, in %) with the trajectory over it."""
+    e = fit.model.effects["surface_friction"]
+    x0, y0, x1, y1 = e["extent"]
+    gx, gy = np.meshgrid(np.linspace(x0, x1, 120), np.linspace(y0, y1, 90))
+    theta = np.array([e[f"slow_{i}_{j}"] for j in range(NODES) for i in range(NODES)])
+    slow = (bilinear(np.column_stack([gx.ravel(), gy.ravel()]), (x0, y0, x1, y1)) @ theta).reshape(gx.shape)
+    lim = max(float(np.abs(slow).max()) * 100, 1.0)
+    fig, ax = subplots(figsize=(7, 5))
+    im = ax.pcolormesh(gx, gy, 100 * slow, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="auto")
+    ax.plot(fit.poses[:, 0], fit.poses[:, 1], color="k", lw=0.3, alpha=0.4)
+    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title="surface friction: speed lost (%) where the robot is")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="% of speed lost")
+    return fig
+
+
+def effect_panels(fit: Fit) -> list[str]:
+    """Report sections for the fitted effects that are better seen than read (the friction field on the floor)."""
+    e = fit.model.effects.get("surface_friction")
+    if not e or e.get("extent") is None:
+        return []
+    return ["<h2>Surface friction on the field</h2>", png(friction_figure(fit))]
 
 
 def fit_quality(cal) -> str:
@@ -224,7 +249,7 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
     if not f.get("converged", True):
         warn += "<p><b>Warning:</b> the optimiser stopped before converging; check the cost per iteration.</p>"
     body = [f"<h1>casm-graph calibration</h1>{warn}", fit_quality(cal) if cal is not None else "",
-            f"<h2>The fit</h2><table>{info}</table>",
+            f"<h2>The fit</h2><table>{info}</table>", *effect_panels(fit),
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, truth)),
             "<h2>Cost per iteration</h2>", png(cost_figure(fit)),
             "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, std)),
@@ -447,9 +472,12 @@ def diagnosis(path: Path, log: Log, diag) -> None:
         for ch, r in diag.channels.items())
     cands = "".join(
         f"<tr><td style='text-align:left'>{c.effect}</td><td>{c.channel}</td><td>{c.delta_bic:.1f}</td>"
-        f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items()))}</td>"
+        f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items() if isinstance(v, (int, float))))}</td>"
         f"<td style='text-align:left'>{e(c.explanation)}</td></tr>" for c in diag.candidates)
     skipped = "".join(f"<li>{e(k)}: {e(v)}</li>" for k, v in diag.skipped.items())
+    sections = [f"<h2>Where the model fails</h2>{_failure_panels(diag)}",
+                f"<h2>On the field</h2>{png(field_heatmap(diag))}"]
+    on_field = bool(diag.structure) and diag.structure[0]["name"] in ("place", "x", "y")   # where: the map first
     body = f"""<!doctype html><html><head><meta charset="utf-8"><title>casm-graph diagnosis</title>
 <style>{STYLE}</style></head><body>
 <h1>Diagnosis: <code>{e(diag.verdict)}</code></h1>
@@ -462,8 +490,7 @@ time blocks hidden from the fit.</p>
 <table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>fitted</th><th>physics</th></tr>{cands}</table>
 {f'<p>Not applicable to this log:</p><ul>{skipped}</ul>' if skipped else ''}
 {_before_after_html(diag)}
-<h2>Where the model fails</h2>{_failure_panels(diag)}
-<h2>On the field</h2>{png(field_heatmap(diag))}
+{''.join(sections if not on_field else sections[::-1])}
 <h2>Per landmark and per action</h2>{png(group_panels(diag))}
 <h2>Over time</h2>{png(time_panel(diag))}
 <p style="color:#777">{diag.seconds:.1f} s</p></body></html>"""

@@ -119,6 +119,7 @@ def simulate(cfg: SimConfig) -> tuple[Log, dict]:
     own = {cls.name: cls for cls in cfg.extra_effects}
     effects = [own[name]() if name in own else get_effect(name)() for name in cfg.effects]   # unknown names fail first
     for e in effects:
+        e.restore({"extent": [-FIELD[0] / 2, -FIELD[1] / 2, FIELD[0] / 2, FIELD[1] / 2]})   # a field effect's extent
         if e.continuous_only:
             raise LogError(f"--effect {e.name}: needs continuous (v, w) commands; the floor protocol "
                            f"(--protocol floor) has it built in (rough regions)")

@@ -65,6 +65,9 @@ class Effect:
     def describe(self, theta: np.ndarray) -> dict:
         return {p: float(v) for p, v in zip(self.params, theta)}
 
+    def restore(self, entry: dict) -> None:
+        """Take back what ``describe`` recorded beside the parameters (a field's extent) from a model.json entry."""
+
     # ------------------------------------------------------------------- hooks
     def velocity(self, theta: np.ndarray, v: np.ndarray, ctx: dict) -> np.ndarray:
         """(n, 3) body velocity each step really runs, given the table's ``v``."""

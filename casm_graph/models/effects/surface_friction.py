@@ -1,36 +1,82 @@
-"""surface_friction: a region of the field (e.g. a carpet) slows the robot down."""
+"""surface_friction: the floor slows the robot by different amounts in different places (a carpet, a rug, a ramp).
+
+The slow-down is a field over the visited area: a bilinear surface through a grid of nodes, each
+node's value the fraction of its speed the robot loses there. The field is linear in its node
+values, so least squares finds a patch wherever it lies (a fixed split, say at x = 0, misses one
+whose edges are elsewhere), and a Gaussian prior per node keeps the unvisited corners at zero.
+"""
 from __future__ import annotations
 
 import numpy as np
 
 from casm_graph.models.effects.base import Effect, register
 
-EDGE = 0.1   # m, width of the smooth step between regions
+NODES = 4                 # nodes per axis of the field
+PRIOR_SIGMA = 0.3         # prior std of each node's slow-down (a carpet rarely costs more than half the speed)
+PAD = 0.05                # share of the visited span added on each side of the field
+MIN_SPAN = 0.5            # m: the field spans at least this much along each axis
 
 
-def side(u):
-    """Smooth 0 -> 1 step across u = 0."""
-    return 0.5 * (1.0 + np.tanh(u / EDGE))
+def extent_around(xy: np.ndarray) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1): the visited area (1st to 99th percentile of ``xy``), padded."""
+    lo, hi = np.percentile(np.asarray(xy, float)[:, :2], [1.0, 99.0], axis=0)
+    mid, half = (lo + hi) / 2, np.maximum((hi - lo) * (0.5 + PAD), MIN_SPAN / 2)
+    return (float(mid[0] - half[0]), float(mid[1] - half[1]), float(mid[0] + half[0]), float(mid[1] + half[1]))
+
+
+def bilinear(xy: np.ndarray, extent, nodes: int = NODES) -> np.ndarray:
+    """(n, nodes**2) weights of each (x, y) on the grid's nodes (row-major from (x0, y0)); clamped at the edges."""
+    x0, y0, x1, y1 = extent
+    u = np.clip((xy[:, 0] - x0) / (x1 - x0), 0.0, 1.0) * (nodes - 1)
+    w = np.clip((xy[:, 1] - y0) / (y1 - y0), 0.0, 1.0) * (nodes - 1)
+    i, j = np.minimum(u.astype(int), nodes - 2), np.minimum(w.astype(int), nodes - 2)
+    fu, fw = u - i, w - j
+    out = np.zeros((len(xy), nodes * nodes))
+    rows = np.arange(len(xy))
+    for di, dj, wt in ((0, 0, (1 - fu) * (1 - fw)), (1, 0, fu * (1 - fw)), (0, 1, (1 - fu) * fw), (1, 1, fu * fw)):
+        np.add.at(out, (rows, (j + dj) * nodes + i + di), wt)
+    return out
 
 
 @register
 class SurfaceFriction(Effect):
     name = "surface_friction"
     channel = "motion"
-    params = ("slow_east", "slow_north")
-    start = (0.0, 0.0)
-    scale = (0.02, 0.02)
-    explains = (("forward", "x"), ("forward", "y"), ("lateral", "x"), ("lateral", "y"),
-                ("turn", "x"), ("turn", "y"))
+    params = tuple(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES))   # node (i along x, j along y)
+    start = (0.0,) * NODES ** 2
+    scale = (0.02,) * NODES ** 2
+    explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
     distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
                         "robot where it is, a fading battery when it is")
-    physics = ("The floor is not uniform: on one part of the field (x > 0 or y > 0) the feet slip or "
-               "drag, so every action covers a smaller fraction of its usual distance there.")
+    physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
+               "every command covers a smaller fraction of its usual distance there; the slow-down is a smooth field "
+               f"over the visited area ({NODES} x {NODES} nodes).")
+
+    def __init__(self, log=None, extent=None):
+        super().__init__(log)
+        self.extent = None if extent is None else tuple(float(v) for v in extent)
+
+    def restore(self, entry: dict) -> None:
+        if entry.get("extent") is not None:
+            self.extent = tuple(float(v) for v in entry["extent"])
+
+    def prior(self):
+        return np.zeros(len(self.params)), np.full(len(self.params), PRIOR_SIGMA)
+
+    def slow(self, theta: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """Fraction of its speed the robot loses at each (x, y)."""
+        return bilinear(np.atleast_2d(xy), self.extent) @ np.asarray(theta, float)
 
     def velocity(self, theta, v, ctx):
-        x, y = ctx["pose"][:, 0], ctx["pose"][:, 1]
-        f = (1.0 - theta[0] * side(x)) * (1.0 - theta[1] * side(y))
-        return v * f[:, None]
+        if self.extent is None:              # the first poses the fit hands over fix the field's extent
+            self.extent = extent_around(ctx["pose"])
+        return v * (1.0 - self.slow(theta, ctx["pose"][:, :2]))[:, None]
+
+    def describe(self, theta):
+        return {**super().describe(theta), "grid": [NODES, NODES],
+                "extent": None if self.extent is None else list(self.extent)}
 
     def simulate_params(self, value, rng):
-        return np.array([value, 0.0])
+        """The nodes east of x = 0 (of a field centred on the origin) slower by ``value``."""
+        i = np.arange(len(self.params)) % NODES
+        return np.where(i > (NODES - 1) / 2, float(value), 0.0)
