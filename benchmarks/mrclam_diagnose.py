@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     for r in a.robots:
         e = res[r] = run_robot(Path(a.data), r, out)
         s = "; ".join(f"{x['channel']} {x['kind']} vs {x['name']} {x['strength']:.3f}" for x in e["structure"]) or "none"
-        c = "; ".join(f"{x['effect']} {x['delta_bic']:.0f} ({', '.join(f'{k} {v:.3g}' for k, v in x['parameters'].items())})"
+        c = "; ".join(f"{x['effect']} {x['delta_bic']:.0f} ({', '.join(f'{k} {v:.3g}' for k, v in x['parameters'].items() if isinstance(v, float))})"
                       for x in e["candidates"])
         b, g = e["base"], e["after"]
         print(f"| {r} | {e['verdict']} | {s} | {c} | {', '.join(e['added']) or 'none'} | "

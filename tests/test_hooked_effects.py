@@ -118,11 +118,11 @@ def test_a_battery_fade_on_a_continuous_log_is_named_fitted_and_explained(tmp_pa
     """Independent world, continuous commands, seed 0, 3 minutes, fade 0.04 per minute. Measured at 4 minutes
     (benchmarks/hooked_effects.py): delta BIC -13,443, fitted 0.0378 +- 0.0014 per minute, position RMS
     0.0086 -> 0.0080 m, verdict none after, every candidate tried. CI tries the fade against its look-alike (a slow
-    floor) and the lag, the other speed change; ``CASM_FULL=1`` tries every candidate. The friction field lowers BIC
+    floor); ``CASM_FULL=1`` tries every candidate. The friction field lowers BIC
     more than the fade (-10,498 against -4,057: along the path a field follows the fade, and the world's slowly
     varying slip; -3,963 on the effect-free world), but the residuals follow time, not place: the verdict is the
     fade's."""
-    candidates = None if FULL else ["battery_fade", "surface_friction", "actuator_lag"]
+    candidates = None if FULL else ["battery_fade", "surface_friction"]
     truth, log, cal, diag = _diagnosed_world(tmp_path, "battery_fade", minutes=3, seed=0, strength=0.04,
                                              candidates=candidates)
     assert {c.effect for c in diag.candidates} <= set(candidates or {c.effect for c in diag.candidates})

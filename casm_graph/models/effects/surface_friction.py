@@ -4,6 +4,9 @@ The slow-down is a field over the visited area: a bilinear surface through a gri
 node's value the fraction of its speed the robot loses there. The field is linear in its node
 values, so least squares finds a patch wherever it lies (a fixed split, say at x = 0, misses one
 whose edges are elsewhere), and a Gaussian prior per node keeps the unvisited corners at zero.
+A floor slower everywhere is a slower action model: the field's level and the action model's scale
+are one quantity, so the field acts through its nodes' deviations from their mean (the action model
+is the speed on the grid's average floor) and its level is left to the prior.
 """
 from __future__ import annotations
 
@@ -63,9 +66,13 @@ class SurfaceFriction(Effect):
     def prior(self):
         return np.zeros(len(self.params)), np.full(len(self.params), PRIOR_SIGMA)
 
+    def free_parameters(self) -> int:
+        return len(self.params) - 1          # the level belongs to the action model
+
     def slow(self, theta: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """Fraction of its speed the robot loses at each (x, y)."""
-        return bilinear(np.atleast_2d(xy), self.extent) @ np.asarray(theta, float)
+        """Fraction of its speed the robot loses at each (x, y), against the grid's average floor."""
+        theta = np.asarray(theta, float)
+        return bilinear(np.atleast_2d(xy), self.extent) @ (theta - theta.mean())
 
     def velocity(self, theta, v, ctx):
         if self.extent is None:              # the first poses the fit hands over fix the field's extent
@@ -73,10 +80,11 @@ class SurfaceFriction(Effect):
         return v * (1.0 - self.slow(theta, ctx["pose"][:, :2]))[:, None]
 
     def describe(self, theta):
-        return {**super().describe(theta), "grid": [NODES, NODES],
+        theta = np.asarray(theta, float)
+        return {**super().describe(theta - theta.mean()), "grid": [NODES, NODES],
                 "extent": None if self.extent is None else list(self.extent)}
 
     def simulate_params(self, value, rng):
-        """The nodes east of x = 0 (of a field centred on the origin) slower by ``value``."""
+        """The nodes east of x = 0 (of a field centred on the origin) slower than those west of it by ``value``."""
         i = np.arange(len(self.params)) % NODES
         return np.where(i > (NODES - 1) / 2, float(value), 0.0)
