@@ -15,6 +15,7 @@ from scipy import stats
 from casm_graph.graph.augmented import AState, EffectProblem
 from casm_graph.graph.table import Layout
 from casm_graph.io.log import Log, wrap
+from casm_graph.models.effects.regional_motion_noise import region_of
 from casm_graph.models.effects.surface_friction import NODES, extent_around
 from casm_graph.models.model import Model
 
@@ -86,9 +87,7 @@ def place(xy: np.ndarray) -> np.ndarray:
     """Where on the floor each (x, y) is: the cell of a grid over the visited area (the friction field's grid),
     a categorical covariate that finds a patch a split along x or y alone dilutes."""
     x0, y0, x1, y1 = extent_around(xy)
-    i = np.clip(((xy[:, 0] - x0) / (x1 - x0) * NODES).astype(int), 0, NODES - 1)
-    j = np.clip(((xy[:, 1] - y0) / (y1 - y0) * NODES).astype(int), 0, NODES - 1)
-    return (j * NODES + i).astype(float)
+    return region_of(xy[:, :2] - [x0, y0], (x1 - x0, y1 - y0), (NODES, NODES)).astype(float)
 
 
 @dataclass

@@ -16,7 +16,7 @@ from casm_graph.fit import residuals
 from casm_graph.fit.methods.base import Fit
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log
-from casm_graph.models.effects.surface_friction import NODES, bilinear
+from casm_graph.models.effects.surface_friction import SurfaceFriction
 from casm_graph.sim.aibo import true_reading
 
 STYLE = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -92,8 +92,9 @@ def friction_figure(fit: Fit):
     e = fit.model.effects["surface_friction"]
     x0, y0, x1, y1 = e["extent"]
     gx, gy = np.meshgrid(np.linspace(x0, x1, 120), np.linspace(y0, y1, 90))
-    theta = np.array([e[f"slow_{i}_{j}"] for j in range(NODES) for i in range(NODES)])
-    slow = (bilinear(np.column_stack([gx.ravel(), gy.ravel()]), (x0, y0, x1, y1)) @ theta).reshape(gx.shape)
+    field = SurfaceFriction(extent=e["extent"])
+    slow = field.slow(np.array([e[p] for p in field.params]), np.column_stack([gx.ravel(), gy.ravel()]))
+    slow = slow.reshape(gx.shape)
     lim = max(float(np.abs(slow).max()) * 100, 1.0)
     fig, ax = subplots(figsize=(7, 5))
     im = ax.pcolormesh(gx, gy, 100 * slow, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="auto")
