@@ -27,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
+from casm_graph.models.effects import get as get_effect   # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 CATALOG = {e["name"] for e in cg.catalog()}
@@ -50,11 +51,13 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
         warnings.simplefilter("ignore")
         base = cg.calibrate(log, seed=seed)
         d1 = cg.diagnose(log, base)
-        add = d1.verdict if d1.verdict in CATALOG else (effect if effect in CATALOG and (
-            kind == "table" or effect in CONTINUOUS_EFFECTS) else None)
+        add = d1.to_add() if d1.verdict in CATALOG else (effect if effect in CATALOG and (
+            kind == "table" or effect in CONTINUOUS_EFFECTS) and get_effect(effect)(log).applicable(log) is None else None)
         row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "strength": truth.get("strength"),
                "seed": seed, "minutes": minutes, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],
+               "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
+                               "order": c.order} for c in d1.candidates[:4]],
                "error_before": position_rms(base, log), "added": add}
         if add is not None:
             fixed = cg.calibrate(log, effects=[add], seed=seed)

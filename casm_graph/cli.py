@@ -178,7 +178,9 @@ def _import_plaza(args) -> int:
 
 def _effects(args) -> int:
     for c in catalog():
-        print(f"{c['name']:<22} {c['channel']:<7} {', '.join(c['parameters'])}")
+        orders = (f"  (orders {', '.join(map(str, c['orders']))}; default {c['order']}: NAME:ORDER)"
+                  if c.get("orders") else "")
+        print(f"{c['name']:<22} {c['channel']:<7} {', '.join(c['parameters'])}{orders}")
         print(f"{'':<30}{c['physics']}")
     return 0
 
@@ -241,7 +243,8 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True)
     c.add_argument("--method", default="graph", choices=sorted(METHODS) + ["scasm", "scasm-graph"])
     c.add_argument("--effect", action="append", default=[], metavar="NAME",
-                   help="add a catalog effect (repeatable); 'proposal' adds the one a diagnosis proposed (--proposal)")
+                   help="add a catalog effect (repeatable; NAME:ORDER for a family's member, e.g. surface_friction:1); "
+                        "'proposal' adds the one a diagnosis proposed (--proposal)")
     c.add_argument("--proposal", default=None, metavar="DIAG",
                    help="the diagnosis (directory or diagnosis.json) whose proposed effect --effect proposal adds")
     c.add_argument("--sensor-degree", type=int, default=3, help="degree of the sensor polynomial (the paper's 3)")

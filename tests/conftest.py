@@ -61,7 +61,8 @@ def position_rms(cal, log) -> float:
 
 def patch_contrast(entry: dict, log, truth: dict) -> float:
     """Mean slow-down of a fitted surface_friction field on the world's patch minus off it, along the true path."""
-    field = REGISTRY["surface_friction"](log, extent=entry["extent"])
+    field = REGISTRY["surface_friction"](log)
+    field.restore(entry)
     slow = field.slow(np.array([entry[p] for p in field.params]), log.truth[:, 1:3])
     p = truth["geometry"]["patch"]
     x, y = log.truth[:, 1], log.truth[:, 2]

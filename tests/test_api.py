@@ -16,6 +16,8 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.cli import main
+from casm_graph.fit import continuous
+from casm_graph.models.model import Model
 from casm_graph.sim.aibo import SimConfig, simulate, write
 
 
@@ -210,3 +212,25 @@ def test_command_graph_options_are_passed_in_and_recorded():
     assert "full" in cal.fit.stages and cal.fit.stages.count("full") <= quick.full_iterations
     v = cal.model.command.velocities(log.controls, log.dt)
     assert np.all(np.isfinite(v)) and np.corrcoef(v[:, 0], log.controls[:, 0])[0, 1] > 0.9
+
+
+def test_what_follows_a_calibration_rebuilds_its_graph(tmp_path):
+    """Diagnosis, uncertainty and the truth check rebuild the graph on the knots the model was calibrated with
+    (model.json ``fit.options.command_graph``, else ``fit.knot_dt``), not on the defaults; a bad recorded
+    spacing is one LogError."""
+    log, _ = cg.simulate("floor", minutes=2, seed=0)
+    quick = cg.CommandGraphOptions(coarse_rounds=2, coarse_iterations=4, coarse_knot_dt=2.0, full_knot_dt=0.5,
+                                   full_rounds=1, full_settle=0)
+    cal = cg.calibrate(log, command_graph=quick)
+    cal.save(tmp_path / "run")
+    loaded = Model.load(tmp_path / "run" / "model.json")
+    assert continuous.options_of(loaded) == quick
+    assert continuous.options_of(cal.model).full_knot_dt == 0.5                  # in memory: fit.knot_dt
+    assert continuous.options_of(cal.model.with_(fit={})) == continuous.DEFAULTS
+    fine = continuous.layout(log, 0.5)
+    diag = cg.diagnose(log, loaded, poses=np.column_stack([cal.trajectory[k] for k in ("x", "y", "theta")]),
+                       candidates=["battery_fade"])
+    assert len(diag.residuals["forward"].residual) == fine.n_poses - 1    # one motion residual per fine segment
+    bad = loaded.with_(fit={**loaded.fit, "options": {"command_graph": {"full_knot_dt": -1}}})
+    with pytest.raises(cg.LogError, match="full_knot_dt"):
+        continuous.options_of(bad)

@@ -2,15 +2,16 @@
 import gtsam
 import numpy as np
 import pytest
+from scipy.integrate import quad
 
 import casm_graph as cg
 from casm_graph.fit import effect_fit
 from casm_graph.fit.solve import _damping
 from casm_graph.graph import augmented as AU
-from casm_graph.models.effects import REGISTRY, catalog
+from casm_graph.models.effects import REGISTRY, catalog, get, of_model, spec
 from casm_graph.models.effects.base import held
 from casm_graph.models.effects.surface_friction import NODES, bilinear, extent_around
-from casm_graph.models.model import paper_start
+from casm_graph.models.model import Model, paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 
 ALL = sorted(REGISTRY)
@@ -153,3 +154,47 @@ def test_friction_field_extent_is_recorded_restored_and_drawn(tmp_path):
     assert list(again[0].extent) == entry["extent"]
     cal.save(tmp_path / "run")
     assert "Surface friction on the field" in (tmp_path / "run" / "report.html").read_text()
+
+
+def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
+    """``surface_friction:K`` is the K x K member; it travels as its name, records its order in model.json and
+    comes back as the same member; an order the family lacks is one LogError."""
+    assert REGISTRY["surface_friction"].orders == (1, 2, 3, NODES)
+    two = get("surface_friction:2")
+    assert two is get("surface_friction:2") and two is not REGISTRY["surface_friction"]
+    assert get(f"surface_friction:{NODES}") is REGISTRY["surface_friction"]
+    assert spec(two) == "surface_friction:2" and spec(REGISTRY["surface_friction"]) == "surface_friction"
+    e = two()
+    assert e.params == ("slow_0_0", "slow_1_0", "slow_0_1", "slow_1_1") and e.free_parameters() == 3
+    plane = get("surface_friction:1")(extent=(-1.0, -1.0, 1.0, 1.0))
+    assert plane.params == ("tilt_east", "tilt_north") and plane.free_parameters() == 2
+    np.testing.assert_allclose(plane.slow(np.array([0.2, 0.1]), np.array([[1, 0], [-1, 0], [0, 1], [9, 9]])),
+                               [0.1, -0.1, 0.05, 0.15])         # east edge 0.2 slower than west; clamped outside
+    with pytest.raises(cg.LogError, match="order 5"):
+        get("surface_friction:5")
+    with pytest.raises(cg.LogError, match="whole number"):
+        get("surface_friction:x")
+    with pytest.raises(cg.LogError, match="one form"):
+        get("camera_latency:2")
+    log, _ = simulate(SimConfig(minutes=1, seed=5, effects={"surface_friction": 0.2}))
+    cal = cg.calibrate(log, effects=["surface_friction:2"], seed=5)
+    entry = cal.model.effects["surface_friction"]
+    assert entry["order"] == 2 and entry["grid"] == [2, 2] and len([k for k in entry if k.startswith("slow_")]) == 4
+    cal.save(tmp_path / "run")
+    back = Model.load(tmp_path / "run" / "model.json")
+    (cls,) = of_model(back.effects)
+    assert cls is two
+    inst = AU.instantiate([cls], log)
+    np.testing.assert_allclose(AU.theta_from_model(inst, back), [entry[p] for p in e.params])
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_lag_members_average_their_step_response_over_each_step(order):
+    """actuator_lag:1 is one first-order stage, :2 two equal stages in cascade (a critically damped drive): the
+    velocity of a step is the old one's share of the response averaged over the step, checked by quadrature."""
+    tau, dt, since = 0.3, 0.1, np.array([0.0, 0.1, 0.5, 2.0])
+    share = (lambda t: np.exp(-t / tau)) if order == 1 else (lambda t: (1 + t / tau) * np.exp(-t / tau))
+    want = [quad(share, s, s + dt)[0] / dt for s in since]
+    ctx = {"since": since, "dt": np.full(4, dt), "v_prev": np.tile([1.0, 0.5, -2.0], (4, 1))}
+    got = get(f"actuator_lag:{order}")().velocity(np.array([tau]), np.zeros((4, 3)), ctx)
+    np.testing.assert_allclose(got, np.outer(want, [1.0, 0.5, -2.0]), rtol=1e-10)

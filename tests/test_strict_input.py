@@ -401,6 +401,11 @@ BAD_MODELS = [
      "not an integer action id"),
     ("effect_param_null", _mutate(lambda d: d["effects"].__setitem__("actuator_lag", {"tau": None})),
      "effects.actuator_lag.tau"),
+    ("friction_flat_extent", _mutate(lambda d: d["effects"].__setitem__("surface_friction", {
+        "slow_0_0": 0.1, "slow_1_0": 0, "slow_0_1": 0, "slow_1_1": 0, "order": 2, "grid": [2, 2],
+        "extent": [0, 0, 0, 1]})), "effects.surface_friction.extent"),
+    ("friction_unknown_order", _mutate(lambda d: d["effects"].__setitem__("surface_friction", {
+        "slow_0_0": 0.1, "order": 7, "grid": [7, 7], "extent": [0, 0, 1, 1]})), "effects.surface_friction.order"),
     ("empty_file", lambda m: "", "not valid JSON"),
     ("denormal_sigma", _mutate(lambda d: d["sensor_model"].__setitem__("reading_sigma", 1e-320)), "units allow"),
     ("huge_sigma", _mutate(lambda d: d["sensor_model"].__setitem__("reading_sigma", 1e300)), "units allow"),

@@ -20,9 +20,9 @@ import numpy as np
 
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
-from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, channel_report,
-                                           chosen_candidates, lookalike_words, lookalikes, proposal_for, structures,
-                                           verdict)
+from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, best_of_family,
+                                           channel_report, chosen_candidates, family_members, family_words,
+                                           lookalike_words, lookalikes, proposal_for, structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel, place
@@ -111,19 +111,21 @@ def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, d
         except LogError as err:
             skipped[name] = str(err).split(": ", 1)[-1]
             continue
-        tried.append(cls(log))
+        tried.extend(m(log) for m in family_members(cls))
     return tried, skipped
 
 
 def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_effects=(), candidates=None,
-             options: DiagnoseOptions = DEFAULTS) -> Diagnosis:
+             options: DiagnoseOptions = DEFAULTS, graph: CT.CommandGraphOptions | None = None) -> Diagnosis:
     """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate
     effects: the profiled ones (:data:`casm_graph.fit.continuous.EFFECTS`) by their profile, every other
     applicable least-squares effect fitted through its hooks on the same coarse graph. Each candidate is settled
     in ``options.settle_rounds`` rounds (a latency's velocity window follows its delay from one to the next), the
-    base it is compared with alike. ``candidates``: names of the effects to try (default: every applicable one)."""
+    base it is compared with alike. ``candidates``: names of the effects to try (default: every applicable one);
+    ``graph``: the knot spacings (default: the model's own, :func:`casm_graph.fit.continuous.options_of`)."""
     t0 = time.perf_counter()
     o = options
+    graph = CT.options_of(model) if graph is None else graph
     chosen = chosen_candidates(candidates, extra_effects)
 
     def wanted(name: str) -> bool:
@@ -131,7 +133,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     if progress is not None:
         progress.stage("refit model", None)
     own = CT.hooked_effects(log, model, extra_effects)
-    lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
+    lay = CT.layout(log, graph.full_knot_dt)
     use = CT.gate(log, poses[log.obs_step], model, effects=own)
     problem = CT.Problem(log, lay, model, use, poses[lay.knots], own)
     st, _ = least_squares(problem, CT.state(poses[lay.knots], model, own), max_iterations=o.settle_iterations)
@@ -149,7 +151,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped and wanted(n)]
     if progress is not None and todo + hooked:
         progress.stage("candidates", len(todo) + len(hooked), unit="effects")
-    coarse = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
+    coarse = CT.layout(log, graph.coarse_knot_dt)
     cuse = CT.gate(log, full[log.obs_step], model, effects=own)
     start = full[coarse.knots]
     n = CT.residual_rows(log, coarse, cuse)
@@ -175,17 +177,18 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
         gain = float(ll - ll0)
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
-                               parameters=dict(m.effects.get(e.name, {})),
+                               parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
                                heldout_skipped="held-out folds are not run for continuous-command logs"))
         if progress is not None:
             progress.step(1)
+    cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
     cands.sort(key=lambda c: c.delta_bic)
     names = [*(n for n in CT.EFFECTS if n not in skipped and wanted(n)), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
     v, words = verdict(cands, struct, {n: kinds[n].explains for n in names}, o)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
                        options=o)
-    words += lookalike_words(alike)
+    words += family_words(cands, v) + lookalike_words(alike)
     if cands:
         words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
                      "residual structure it is built for.")

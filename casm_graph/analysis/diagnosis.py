@@ -44,7 +44,7 @@ from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
 from casm_graph.graph.augmented import instantiate
 from casm_graph.io.log import Log, LogError
 from casm_graph.io.output import atomic_dir, json_text
-from casm_graph.models.effects import REGISTRY, of_model
+from casm_graph.models.effects import REGISTRY, get, of_model, spec
 from casm_graph.models.effects.base import held
 from casm_graph.models.effects.proposal import proposal_effect
 from casm_graph.models.model import Model
@@ -201,12 +201,50 @@ class Candidate:
     parameters: dict = field(default_factory=dict)
     seconds: float = 0.0
     heldout_skipped: str = "no in-sample gain (delta BIC >= 0), held-out folds not run"
+    order: int | None = None         # a family's member (Effect.orders): its complexity
+    orders: dict = field(default_factory=dict)   # every member's delta BIC, by order (the kept one the lowest)
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
                 "heldout_nll_drop": self.heldout_nll_drop, "explanation": self.explanation,
                 "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters,
-                **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped})}
+                **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped}),
+                **({"order": self.order, "orders": {str(k): v for k, v in self.orders.items()}}
+                   if self.orders else {})}
+
+    @property
+    def spec(self) -> str:
+        """The name ``calibrate --effect`` takes for this candidate (``name:order`` for a family member)."""
+        return self.effect if self.order is None else f"{self.effect}:{self.order}"
+
+
+def family_members(cls) -> list:
+    """``cls``, or each member of its family (``Effect.orders``): the forms a diagnosis fits and compares by BIC."""
+    return [cls.of_order(k) for k in cls.orders] if cls.orders else [cls]
+
+
+def best_of_family(cands: list[Candidate]) -> list[int]:
+    """Indices (in order) of the candidates kept: per effect the member with the lowest delta BIC, which records
+    every member's delta BIC in ``orders``."""
+    best: dict[str, int] = {}
+    for i, c in enumerate(cands):
+        if c.effect not in best or c.delta_bic < cands[best[c.effect]].delta_bic:
+            best[c.effect] = i
+    for i in best.values():
+        c = cands[i]
+        if c.order is not None:
+            c.orders = {k.order: k.delta_bic for k in cands if k.effect == c.effect}
+    return sorted(best.values())
+
+
+def family_words(cands: list[Candidate], verdict_effect: str) -> list[str]:
+    """A sentence on the complexity the data chose when the verdict's effect is a family."""
+    c = next((c for c in cands if c.effect == verdict_effect and c.orders), None)
+    if c is None:
+        return []
+    tried = ", ".join(f"order {k}: {v:+.1f}" for k, v in sorted(c.orders.items()))
+    return [f"{c.effect} is a family of forms; BIC chose order {c.order} (delta BIC {tried}). "
+            f"Add it with `calibrate --effect {c.spec}`."]
 
 
 def folds(log: Log, k: int = DEFAULTS.folds) -> list[np.ndarray]:
@@ -257,7 +295,7 @@ def _n_data(log: Log) -> int:
 
 def _resolve(extra):
     """A catalog name (how effects travel to worker processes) back to its class."""
-    return REGISTRY[extra] if isinstance(extra, str) else extra
+    return get(extra) if isinstance(extra, str) else extra
 
 
 def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
@@ -273,7 +311,7 @@ def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.Eff
     dll = f.log_likelihood - base.log_likelihood
     dbic = -2.0 * dll + eff.free_parameters() * np.log(_n_data(log))
     c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
-                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0)
+                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=eff.order if eff.orders else None)
     return c, f.model, f.poses
 
 
@@ -491,6 +529,10 @@ class Diagnosis:
                 f"{ch} {v[0][i]:.4g} -> {v[1][i]:.4g}" for ch, v in pred["channels"].items()))
         return lines
 
+    def to_add(self) -> str | None:
+        """What ``calibrate --effect`` takes to add the verdict's effect (``name:order`` for a family), or None."""
+        return next((c.spec for c in self.candidates if c.effect == self.verdict), None)
+
     def proposal_effect(self) -> type:
         """The effect class of the proposal (``cg.calibrate(log, effects=[diag.proposal_effect()])``)."""
         if not self.proposal:
@@ -541,20 +583,22 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
             skipped[cls.name] = why
         else:
             todo.append(cls)
-    wire = (lambda cls: cls.name if REGISTRY.get(cls.name) is cls else cls)
+    members = [m for cls in todo for m in family_members(cls)]
     if progress is not None:
-        progress.stage("candidates", len(todo), unit="effects")
-    fitted = _parallel(_fit_task, [(log, refit, base, wire(cls), o) for cls in todo], workers, progress, client)
+        progress.stage("candidates", len(members), unit="effects")
+    fitted = _parallel(_fit_task, [(log, refit, base, spec(m), o) for m in members], workers, progress, client)
+    keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
+    fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
     cands = [c for c, _, _ in fitted]
     # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
     # the verdict, and the folds are most of the cost
-    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, todo) if c.delta_bic < o.heldout_gate]
+    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, members) if c.delta_bic < o.heldout_gate]
     if promising:
         if progress is not None:
             progress.stage("held-out", len(promising) + 1, unit="models")
-        present_wire = [wire(type(e)) for e in base.effects]
+        present_wire = [spec(type(e)) for e in base.effects]
         held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire, o)]
-                         + [(log, m, p, present_wire + [wire(cls)], o) for _, m, p, cls in promising],
+                         + [(log, m, p, present_wire + [spec(cls)], o) for _, m, p, cls in promising],
                          workers, progress, client)
         for (c, _, _, _), h in zip(promising, held[1:]):
             c.heldout_nll_drop = float(h - held[0])
@@ -562,7 +606,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     struct = structures(rep, o)
     v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool}, o)
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o)
-    return Diagnosis(rep, cands, v, words + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
+    return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
                      predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, o.proposal),
                      options=o)

@@ -63,10 +63,11 @@ def baseline_trajectories(log: Log, fit: Fit, progress: Progress | None = None) 
     """Poses of the identity-model graph (from the fit's own start) and of raw dead reckoning."""
     progress = progress or Progress()
     ident = CT.identity_model(log, fit.notes["start_model"])
-    full = CT.layout(log, CT.DEFAULTS.full_knot_dt)
+    o = CT.options_of(fit.model)                 # the calibration's graph
+    full = CT.layout(log, o.full_knot_dt)
     start = fit.notes["start_poses"]
-    progress.stage("identity graph", CT.DEFAULTS.coarse_rounds)
-    model, kp, *_ = CT.optimise_rounds(log, full, ident, start[full.knots], CT.DEFAULTS.coarse_rounds, CT.DEFAULTS.full_iterations,
+    progress.stage("identity graph", o.coarse_rounds)
+    model, kp, *_ = CT.optimise_rounds(log, full, ident, start[full.knots], o.coarse_rounds, o.full_iterations,
                                        0, "identity", [], [], progress, freeze=True)
     graph = CT.fill_in(log, model, full.knots, kp)
     dr = None

@@ -794,7 +794,7 @@ def continuous_likelihood(log: Log, model: Model, poses: np.ndarray, iterations:
     ``poses`` (T+1, 3) on the calibration's fine knots, sightings beyond the gate set aside as the fit does;
     the model's hooked effects (``own``: user classes among them) act, their parameters integrated out with
     the command map."""
-    lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
+    lay = CT.layout(log, CT.options_of(model).full_knot_dt)      # the calibration's fine knots
     kp = np.asarray(poses, float)[lay.knots]
     effects = CT.hooked_effects(log, model, own)
     r_use, b_use = CT.gate(log, np.asarray(poses, float)[log.obs_step], model, effects=effects)

@@ -73,6 +73,26 @@ class CommandGraphOptions:
 DEFAULTS = CommandGraphOptions()
 
 
+def options_of(model: Model) -> CommandGraphOptions:
+    """The graph options ``model`` was calibrated with (model.json ``fit.options.command_graph``, else its
+    ``fit.knot_dt``; defaults for what is not recorded), so a diagnosis, the uncertainty and the ground-truth
+    check rebuild the calibration's graph."""
+    fit = model.fit or {}
+    recorded = dict(((fit.get("options") or {}).get("command_graph") or {}))
+    if "knot_dt" in fit:
+        recorded.setdefault("full_knot_dt", fit["knot_dt"])
+    known = {}
+    for k, v in recorded.items():
+        if k not in CommandGraphOptions.__dataclass_fields__:
+            continue
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0 \
+                or (v == 0 and k.endswith("_dt")):
+            raise LogError(f"model.json: fit.options.command_graph.{k} must be a {'positive' if k.endswith('_dt') else 'non-negative'} "
+                           f"number (got {v!r})")
+        known[k] = type(getattr(DEFAULTS, k))(v)
+    return replace(DEFAULTS, **known)
+
+
 # --------------------------------------------------------------------------- the graph
 
 @dataclass(frozen=True)
@@ -863,6 +883,9 @@ def check_effects(effects, log: Log) -> None:
     own ``applicable`` accepts the log (fitted through its hooks, :func:`fit_hooked`)."""
     for e in effects:
         name = e if isinstance(e, str) else e.name
+        if isinstance(e, str) and e.partition(":")[0] in EFFECTS and ":" in e:
+            raise LogError(f"--effect {e}: on continuous commands {e.partition(':')[0]} is profiled in its own forms; "
+                           f"give --effect {e.partition(':')[0]}")
         if name in EFFECTS or name in NOISE_EFFECTS:
             lack = missing_channels(name, log.channels)
             if lack:

@@ -303,20 +303,25 @@ def _effects(w: _Where, effects) -> dict:
         cls = REGISTRY.get(name)
         if cls is None:
             continue
-        if name == "regional_motion_noise":
-            if not entry:
-                continue
+        if not entry:
+            continue
+        if "grid" in entry or name == "regional_motion_noise":     # a field over the floor: its grid and extent
             grid = w.vec(entry.get("grid"), f"effects.{name}.grid", n=2, positive=True)
             if np.any(grid != np.round(grid)):
                 w.fail(f"effects.{name}.grid", "must hold two whole counts")
+        if entry.get("extent") is not None or name == "regional_motion_noise":
             ext = w.vec(entry.get("extent"), f"effects.{name}.extent", n=4)
             if not (ext[2] > ext[0] and ext[3] > ext[1]):
                 w.fail(f"effects.{name}.extent", "must be [x0, y0, x1, y1] with x1 > x0 and y1 > y0")
+        if cls.orders and entry.get("order") is not None and entry["order"] not in cls.orders:
+            w.fail(f"effects.{name}.order", f"must be one of {list(cls.orders)}")
+        if name == "regional_motion_noise":
             for p in cls.params:
                 w.vec(entry.get(p), f"effects.{name}.{p}", n=int(grid.prod()), nonneg=True)
             continue
+        names = {p for k in cls.orders for p in cls.of_order(k)().params} | set(cls.params)   # every member's
         for p, v in entry.items():          # scalar parameters (landmark_offset's shape_k included)
-            if p in cls.params or p.startswith("shape_"):
+            if p in names or p.startswith("shape_"):
                 w.num(v, f"effects.{name}.{p}")
     return effects
 

@@ -79,9 +79,10 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         if poses is None:
             if progress is not None:
                 progress.stage("start trajectory", None)
-            poses = continuous.fit(log, model, marginals=False).poses
+            poses = continuous.fit(log, model, marginals=False, options=continuous.options_of(model)).poses
+        graph = calibration.options.command_graph if isinstance(calibration, Calibration) else None
         diag = diagnose_continuous(log, model, poses, progress=progress, extra_effects=extra_effects,
-                                   candidates=candidates, options=options)
+                                   candidates=candidates, options=options, graph=graph)
     else:
         check_compatible(log, model, "the model")
         model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],

@@ -94,7 +94,7 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
                   truth=truth.get("effects", {}))
     named = diag.verdict if diag.verdict in {c["effect"] for c in cands} else None
     if after and named:
-        cls = effect_class if effect_class is not None and named == effect_class.name else named
+        cls = effect_class if effect_class is not None and named == effect_class.name else diag.to_add()
         _, fit2 = calibrate_run.run(w / "log", w / "run_fixed", effects=(cls,), seed=seed)
         diag2 = diagnose_run.run(w / "log", w / "run_fixed" / "model.json", w / "diag_fixed", workers=workers,
                                  extra_effects=extra, candidates=candidates, before=w / "diag")

@@ -127,7 +127,7 @@ def prepare(log: Log, model: Model, poses: np.ndarray | None = None,
             raise LogError(f"{source}: uncertainty samples one forward and one turn noise level, not "
                            f"{RegionalMotionNoise.name}'s per-region ones; calibrate without that effect")
         if poses is None:
-            poses = continuous.fit(log, model, marginals=False).poses
+            poses = continuous.fit(log, model, marginals=False, options=continuous.options_of(model)).poses
         return model, poses
     if model.command is not None or log.action is None:
         raise LogError(f"{source}: uncertainty needs a table action model for a log with an 'action' column "

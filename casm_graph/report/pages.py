@@ -92,7 +92,8 @@ def friction_figure(fit: Fit):
     e = fit.model.effects["surface_friction"]
     x0, y0, x1, y1 = e["extent"]
     gx, gy = np.meshgrid(np.linspace(x0, x1, 120), np.linspace(y0, y1, 90))
-    field = SurfaceFriction(extent=e["extent"])
+    field = SurfaceFriction()
+    field.restore(e)
     slow = field.slow(np.array([e[p] for p in field.params]), np.column_stack([gx.ravel(), gy.ravel()]))
     slow = slow.reshape(gx.shape)
     lim = max(float(np.abs(slow).max()) * 100, 1.0)

@@ -15,17 +15,19 @@ from casm_graph.models.effects import (
     regional_motion_noise,  # noqa: F401
     surface_friction,  # noqa: F401
 )
-from casm_graph.models.effects.base import REGISTRY, Effect, get, register
+from casm_graph.models.effects.base import REGISTRY, Effect, get, register, spec
 
-__all__ = ["REGISTRY", "Effect", "get", "register", "catalog", "of_model", "unresolved"]
+__all__ = ["REGISTRY", "Effect", "get", "register", "spec", "catalog", "of_model", "unresolved"]
 
 
 def of_model(effects: dict, own=()) -> list[type[Effect]]:
     """The classes of a model's ``effects`` entries: ``own`` (user classes) by name, the catalog's, and a
     proposal rebuilt from its stored terms (:mod:`casm_graph.models.effects.proposal`)."""
     mine = {cls.name: cls for cls in own}
-    return [mine[name] if name in mine else proposal.proposal_effect(entry) if name == proposal.NAME else get(name)
-            for name, entry in effects.items()]
+    out = [mine[name] if name in mine else proposal.proposal_effect(entry) if name == proposal.NAME else get(name)
+           for name, entry in effects.items()]
+    return [cls.of_order(int(entry["order"])) if cls.orders and entry.get("order") is not None else cls
+            for cls, entry in zip(out, effects.values())]
 
 
 def unresolved(effects: dict, own=()) -> list[str]:
@@ -36,10 +38,11 @@ def unresolved(effects: dict, own=()) -> list[str]:
 
 
 def catalog() -> list[dict]:
-    """Name, channel, parameters and physics of every registered effect."""
+    """Name, channel, parameters (of the default order) and physics of every registered effect; a family's
+    orders."""
     out = []
     for name in sorted(REGISTRY):
         e = REGISTRY[name]()
         out.append({"name": name, "channel": e.channel, "parameters": list(e.params),
-                    "physics": e.physics})
+                    "physics": e.physics, **({"orders": list(e.orders), "order": e.order} if e.orders else {})})
     return out

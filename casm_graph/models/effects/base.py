@@ -23,6 +23,7 @@ import numpy as np
 from casm_graph.io.log import Log, LogError
 
 REGISTRY: dict[str, type["Effect"]] = {}
+_ORDERED: dict[tuple, type["Effect"]] = {}     # (family's class, order) -> its member, made once
 
 
 class Effect:
@@ -41,9 +42,31 @@ class Effect:
     uses_velocity: bool = False             # its sensor hooks read ctx["velocity"] (the body velocity at the sighting)
     velocity_window: str = ""               # the parameter (s) over which that velocity is averaged before the sighting
                                             # on continuous commands (empty: the step that ends at the sighting)
+    orders: tuple[int, ...] = ()            # a family's complexities, compared by BIC in a diagnosis (empty: one form)
+    order: int | None = None                # this class's complexity among ``orders``
 
-    def __init__(self, log: Log | None = None):
+    def __init__(self, log: Log | None = None, order: int | None = None):
         self.log = log
+        if order is not None or self.order is not None:
+            self.set_order(self.order if order is None else order)
+
+    @classmethod
+    def of_order(cls, order: int) -> type["Effect"]:
+        """The family member of complexity ``order`` (one class per order, so a name travels as ``name:order``)."""
+        _check_order(cls, order)
+        root = REGISTRY.get(cls.name, cls)
+        if root.order == order:
+            return root
+        key = (root, order)
+        if key not in _ORDERED:
+            _ORDERED[key] = type(root.__name__, (root,), {"order": order, "__doc__": root.__doc__,
+                                                                 "__module__": root.__module__})
+        return _ORDERED[key]
+
+    def set_order(self, order: int) -> None:
+        """Shape the parameters for complexity ``order`` (a family overrides this; see ``orders``)."""
+        _check_order(self, order)
+        self.order = order
 
     # ----------------------------------------------------------------- support
     def applicable(self, log: Log) -> str | None:
@@ -63,7 +86,7 @@ class Effect:
         return np.array([value], float)
 
     def describe(self, theta: np.ndarray) -> dict:
-        return {p: float(v) for p, v in zip(self.params, theta)}
+        return {**{p: float(v) for p, v in zip(self.params, theta)}, **({"order": self.order} if self.orders else {})}
 
     def restore(self, entry: dict) -> None:
         """Take back what ``describe`` recorded beside the parameters (a field's extent) from a model.json entry."""
@@ -98,6 +121,12 @@ class Effect:
         return obs
 
 
+def _check_order(effect, order) -> None:
+    if order not in effect.orders:
+        raise LogError(f"effect {effect.name!r}: order {order} is not one of its forms "
+                       f"({', '.join(map(str, effect.orders)) or 'it has one form'})")
+
+
 def held(cls: type[Effect]) -> type[Effect]:
     """``cls`` with its parameters held where they are: least squares and the noise step leave them alone."""
     return type(cls.__name__, (cls,), {"noise_only": True, "estimate_noise": Effect.estimate_noise,
@@ -113,6 +142,25 @@ def register(cls: type[Effect]) -> type[Effect]:
 
 
 def get(name: str) -> type[Effect]:
-    if name not in REGISTRY:
-        raise LogError(f"unknown effect {name!r} (known: {', '.join(sorted(REGISTRY))})")
-    return REGISTRY[name]
+    """The catalog class named ``name``, or ``name:order`` for a family member of that complexity."""
+    base, sep, order = name.partition(":")
+    if base not in REGISTRY:
+        raise LogError(f"unknown effect {base!r} (known: {', '.join(sorted(REGISTRY))})")
+    if not sep:
+        return REGISTRY[base]
+    try:
+        k = int(order)
+    except ValueError:
+        raise LogError(f"effect {name!r}: the order after ':' must be a whole number") from None
+    return REGISTRY[base].of_order(k)
+
+
+def spec(cls: type[Effect]):
+    """How ``cls`` travels to a worker process: its catalog name (``name:order`` for a family member), which
+    :func:`get` turns back into it, or the class itself (a user's effect)."""
+    root = REGISTRY.get(cls.name)
+    if root is cls:
+        return cls.name
+    if root is not None and cls.order is not None and _ORDERED.get((root, cls.order)) is cls:
+        return f"{cls.name}:{cls.order}"
+    return cls

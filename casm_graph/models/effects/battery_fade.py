@@ -1,5 +1,10 @@
-"""battery_fade: every velocity shrinks in proportion to the time the robot has been running."""
+"""battery_fade: every velocity shrinks as the robot keeps running.
+
+A polynomial in time: order 1 loses a fixed fraction per minute, order 2 adds a term in minutes squared (a
+battery whose voltage sags faster as it empties); the diagnosis keeps the member BIC prefers."""
 from __future__ import annotations
+
+import numpy as np
 
 from casm_graph.models.effects.base import Effect, register
 
@@ -11,11 +16,20 @@ class BatteryFade(Effect):
     params = ("loss_per_minute",)
     start = (0.0,)
     scale = (0.005,)
+    orders = (1, 2)
+    order = 1
     explains = (("forward", "time"), ("lateral", "time"), ("turn", "time"))
     distinguished_by = ("the same actions run early and late in every part of the field: a fading battery slows "
                         "the robot when it is, a slow floor where it is")
     physics = ("As the battery drains the servos deliver less power, so every action runs slower "
-               "the longer the robot has been on: velocities fall by a fixed fraction per minute.")
+               "the longer the robot has been on: velocities fall by a fixed fraction per minute (order 2: a "
+               "quadratic in time, the sag bending as the battery empties).")
+
+    def set_order(self, order: int) -> None:
+        super().set_order(order)
+        self.params = ("loss_per_minute", "loss_per_minute_squared")[:order]
+        self.start, self.scale = (0.0,) * order, (0.005, 0.0005)[:order]
 
     def velocity(self, theta, v, ctx):
-        return v * (1.0 - theta[0] * ctx["t"] / 60.0)[:, None]
+        m = ctx["t"] / 60.0
+        return v * (1.0 - m * np.polyval(np.asarray(theta, float)[::-1], m))[:, None]

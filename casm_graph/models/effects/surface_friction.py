@@ -6,7 +6,9 @@ values, so least squares finds a patch wherever it lies (a fixed split, say at x
 whose edges are elsewhere), and a Gaussian prior per node keeps the unvisited corners at zero.
 A floor slower everywhere is a slower action model: the field's level and the action model's scale
 are one quantity, so the field acts through its nodes' deviations from their mean (the action model
-is the speed on the grid's average floor) and its level is left to the prior.
+is the speed on the grid's average floor) and its level is left to the prior. The field is a family:
+order 1 a plane (the floor slower toward one side: two slopes), order K >= 2 a K x K grid of nodes; the
+diagnosis keeps the member BIC prefers.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import numpy as np
 
 from casm_graph.models.effects.base import Effect, register
 
-NODES = 4                 # nodes per axis of the field
+NODES = 4                 # nodes per axis of the field's richest form (the default)
 PRIOR_SIGMA = 0.3         # prior std of each node's slow-down (a carpet rarely costs more than half the speed)
 PAD = 0.05                # share of the visited span added on each side of the field
 MIN_SPAN = 0.5            # m: the field spans at least this much along each axis
@@ -48,18 +50,28 @@ class SurfaceFriction(Effect):
     params = tuple(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES))   # node (i along x, j along y)
     start = (0.0,) * NODES ** 2
     scale = (0.02,) * NODES ** 2
+    orders = (1, 2, 3, NODES)        # 1: a plane; K: nodes per axis
+    order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
     distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
                         "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
                "every command covers a smaller fraction of its usual distance there; the slow-down is a smooth field "
-               f"over the visited area ({NODES} x {NODES} nodes).")
+               "over the visited area (a plane, or a grid of 2 x 2 to 4 x 4 nodes).")
 
-    def __init__(self, log=None, extent=None):
-        super().__init__(log)
+    def __init__(self, log=None, extent=None, order=None):
+        super().__init__(log, order)
         self.extent = None if extent is None else tuple(float(v) for v in extent)
 
+    def set_order(self, order: int) -> None:
+        super().set_order(order)
+        self.params = (("tilt_east", "tilt_north") if order == 1 else
+                       tuple(f"slow_{i}_{j}" for j in range(order) for i in range(order)))
+        self.start, self.scale = (0.0,) * len(self.params), (0.02,) * len(self.params)
+
     def restore(self, entry: dict) -> None:
+        if entry.get("order") is not None or entry.get("grid") is not None:
+            self.set_order(int(entry["order"] if entry.get("order") is not None else entry["grid"][0]))
         if entry.get("extent") is not None:
             self.extent = tuple(float(v) for v in entry["extent"])
 
@@ -67,12 +79,18 @@ class SurfaceFriction(Effect):
         return np.zeros(len(self.params)), np.full(len(self.params), PRIOR_SIGMA)
 
     def free_parameters(self) -> int:
-        return len(self.params) - 1          # the level belongs to the action model
+        return len(self.params) - (self.order > 1)      # a grid's level belongs to the action model
 
     def slow(self, theta: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        """Fraction of its speed the robot loses at each (x, y), against the grid's average floor."""
-        theta = np.asarray(theta, float)
-        return bilinear(np.atleast_2d(xy), self.extent) @ (theta - theta.mean())
+        """Fraction of its speed the robot loses at each (x, y), against the field's average floor (a plane's
+        slopes are the east and north edges against the west and south ones)."""
+        theta, xy = np.asarray(theta, float), np.atleast_2d(xy)
+        if self.order == 1:
+            x0, y0, x1, y1 = self.extent
+            u = np.clip((xy[:, 0] - x0) / (x1 - x0), 0.0, 1.0) - 0.5
+            w = np.clip((xy[:, 1] - y0) / (y1 - y0), 0.0, 1.0) - 0.5
+            return theta[0] * u + theta[1] * w
+        return bilinear(xy, self.extent, self.order) @ (theta - theta.mean())
 
     def velocity(self, theta, v, ctx):
         if self.extent is None:              # the first poses the fit hands over fix the field's extent
@@ -81,10 +99,15 @@ class SurfaceFriction(Effect):
 
     def describe(self, theta):
         theta = np.asarray(theta, float)
-        return {**super().describe(theta - theta.mean()), "grid": [NODES, NODES],
-                "extent": None if self.extent is None else list(self.extent)}
+        extent = {"extent": None if self.extent is None else list(self.extent)}
+        if self.order == 1:
+            return {**super().describe(theta), **extent}
+        return {**super().describe(theta - theta.mean()), "grid": [self.order, self.order], **extent}
 
     def simulate_params(self, value, rng):
-        """The nodes east of x = 0 (of a field centred on the origin) slower than those west of it by ``value``."""
-        i = np.arange(len(self.params)) % NODES
-        return np.where(i > (NODES - 1) / 2, float(value), 0.0)
+        """The nodes east of x = 0 (of a field centred on the origin) slower than those west of it by ``value``
+        (on an odd grid the middle column half as slow; a plane's east edge ``value`` slower than its west)."""
+        if self.order == 1:
+            return np.array([float(value), 0.0])
+        i = np.arange(len(self.params)) % self.order
+        return float(value) * np.clip(i - (self.order - 1) / 2 + 0.5, 0.0, 1.0)
