@@ -15,6 +15,7 @@ evidence is the residual structure the effect is built for.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -126,6 +127,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     t0 = time.perf_counter()
     o = options
     graph = CT.options_of(model) if graph is None else graph
+    search = replace(graph.profile, lag_order_support=o.lag_order_support)    # the diagnosis's own support
     chosen = chosen_candidates(candidates, extra_effects)
 
     def wanted(name: str) -> bool:
@@ -156,11 +158,12 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     start = full[coarse.knots]
     n = CT.residual_rows(log, coarse, cuse)
     if todo or hooked:        # every candidate scored against one base, settled as they are
-        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=o.settle_rounds)
+        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=o.settle_rounds,
+                                           iterations=search.iterations)
     for name in todo:
-        prof = CT.profile(log, base, name, own, lag_order_support=o.lag_order_support)
+        prof = CT.profile(log, base, name, own, options=search, knot_dt=graph.coarse_knot_dt)
         ll, _ = CT.settled_log_likelihood(log, coarse, CT.with_effect(model, name, prof.value, prof.order), cuse,
-                                          start, own, rounds=o.settle_rounds)
+                                          start, own, rounds=o.settle_rounds, iterations=search.iterations)
         gain = float(ll - ll0)
         eff = REGISTRY[name]
         (param,) = eff.params
@@ -173,7 +176,8 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
         if progress is not None:
             progress.step(1)
     for e in hooked:
-        ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds)
+        ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds,
+                                          iterations=search.iterations)
         gain = float(ll - ll0)
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,

@@ -47,6 +47,28 @@ INIT_WINDOW = 5.0            # s: the shortest log the start's windows can place
 
 
 @dataclass(frozen=True)
+class ProfileOptions:
+    """How a profiled effect's parameter (the command model's lag, a fixed camera's lens) is searched on the coarse
+    graph (:func:`profile`): a grid brackets the maximum, Brent's bounded search refines it."""
+
+    grid: dict = field(default_factory=lambda: {
+        "actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),                      # tau, s
+        "lens_distortion": (-0.4, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.4)})   # k, per rad^2
+    bounds: dict = field(default_factory=lambda: {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)})
+    tol: dict = field(default_factory=lambda: {"actuator_lag": 0.01, "lens_distortion": 0.002})
+    iterations: int = 8                # LM iterations settling each evaluation (half as many after the noise step)
+    lag_orders: tuple = (1, 2)         # the lag's family: one first-order stage, or two (a critically damped drive),
+    lag_order_support: float = -10.0   # the second tried when the first is this supported (delta BIC), kept when
+    #                                    BIC prefers it
+
+    def to_json(self) -> dict:
+        """As model.json records it (lists for tuples)."""
+        return {"grid": {k: list(v) for k, v in self.grid.items()}, "bounds": {k: list(v) for k, v in self.bounds.items()},
+                "tol": dict(self.tol), "iterations": self.iterations, "lag_orders": list(self.lag_orders),
+                "lag_order_support": self.lag_order_support}
+
+
+@dataclass(frozen=True)
 class CommandGraphOptions:
     """How the command-model graph searches (the module docstring's coarse and fine stages); recorded in model.json
     ``fit.options.command_graph``."""
@@ -65,9 +87,10 @@ class CommandGraphOptions:
     regional_rounds: int = 40          # EM rounds of regional_motion_noise's k's on the fine graph; stop when none moves
     regional_tol: float = 0.02         # by this share (slow where sightings say little about single steps)
     hooked_rounds: int = 3             # fine rounds with hooked effects' parameters free (then up to ``full_settle`` more)
+    profile: ProfileOptions = field(default_factory=ProfileOptions)   # the lag's and the lens's search
 
     def to_json(self) -> dict:
-        return asdict(self)
+        return {**asdict(self), "profile": self.profile.to_json()}
 
 
 DEFAULTS = CommandGraphOptions()
@@ -83,8 +106,8 @@ def options_of(model: Model) -> CommandGraphOptions:
         recorded.setdefault("full_knot_dt", fit["knot_dt"])
     known = {}
     for k, v in recorded.items():
-        if k not in CommandGraphOptions.__dataclass_fields__:
-            continue
+        if k not in CommandGraphOptions.__dataclass_fields__ or isinstance(getattr(DEFAULTS, k), ProfileOptions):
+            continue                    # the profile's search is not part of the graph
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0 \
                 or (v == 0 and k.endswith("_dt")):
             raise LogError(f"model.json: fit.options.command_graph.{k} must be a {'positive' if k.endswith('_dt') else 'non-negative'} "
@@ -859,13 +882,6 @@ def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Probl
 # --------------------------------------------------------------------------- effects for continuous commands
 EFFECTS = ("actuator_lag", "lens_distortion")     # catalog effects profiled and diagnosed on continuous-command logs
 NOISE_EFFECTS = (RMN.RegionalMotionNoise.name,)   # set by the noise step of every round, added on request only
-PROFILE_GRID = {"actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),        # tau, s
-                "lens_distortion": (-0.4, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.4)}   # k, per rad^2
-PROFILE_BOUNDS = {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)}
-PROFILE_TOL = {"actuator_lag": 0.01, "lens_distortion": 0.002}
-PROFILE_ITERATIONS = 8
-LAG_ORDERS = (1, 2)          # the actuator lag's family: one first-order stage, or two (a critically damped drive),
-                             # the second tried when the first is strongly supported and kept when BIC prefers it
 
 
 NEEDS = {"lens_distortion": ("reading", "bearing")}   # the sensor channels an effect's physics needs (a lens: a
@@ -946,14 +962,15 @@ class Profile:
     gain: float                    # log-likelihood at the maximum minus with the effect off (nats)
     n_data: int                    # residual rows, for BIC
     grid: list                     # (value, log-likelihood) pairs evaluated, in order
-    order: int = 1                 # the lag's stages (LAG_ORDERS); one more free parameter when above 1
+    order: int = 1                 # the lag's stages (ProfileOptions.lag_orders); one more free parameter when above 1
 
     @property
     def delta_bic(self) -> float:
         return float(-2 * self.gain + self.order * np.log(self.n_data))
 
 
-def profile(log: Log, fit: Fit, name: str, effects=(), lag_order_support: float = -10.0) -> Profile:
+def profile(log: Log, fit: Fit, name: str, effects=(), options: ProfileOptions | None = None,
+            knot_dt: float = DEFAULTS.coarse_knot_dt) -> Profile:
     """Profile one continuous-log effect's parameter on the coarse graph of a fitted log (with the hooked ``effects``
     the model already has).
 
@@ -961,36 +978,38 @@ def profile(log: Log, fit: Fit, name: str, effects=(), lag_order_support: float 
     map and polynomial re-settle (LM from ``fit``'s own), moves each noise level to its
     maximum-likelihood value and re-settles once more; its value is the log-likelihood with the
     noise levels concentrated out, so two settings compare as a likelihood ratio on the same data.
-    A grid brackets the maximum, Brent's bounded search refines it. An actuator lag supported with one stage
-    (delta BIC below ``lag_order_support``) is profiled with two as well, and the order BIC prefers (one more
-    parameter) is kept.
+    A grid brackets the maximum, Brent's bounded search refines it (``options``). An actuator lag supported with
+    one stage (delta BIC below ``options.lag_order_support``) is profiled with two as well, and the order BIC
+    prefers (one more parameter) is kept. ``knot_dt``: the coarse graph's knot spacing.
     """
-    lay = layout(log, DEFAULTS.coarse_knot_dt)
+    o = options or ProfileOptions()
+    lay = layout(log, knot_dt)
     use = gate(log, fit.poses[log.obs_step], fit.model, effects=effects)
     start = fit.poses[lay.knots]
     n = residual_rows(log, lay, use)
-    best = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=1)
-    if name == "actuator_lag" and best.delta_bic < lag_order_support:
-        for order in LAG_ORDERS[1:]:
-            other = _profile_order(log, lay, use, start, fit.model, name, effects, n, order=order)
+    best = _profile_order(log, lay, use, start, fit.model, name, effects, n, 1, o)
+    if name == "actuator_lag" and best.delta_bic < o.lag_order_support:
+        for order in o.lag_orders[1:]:
+            other = _profile_order(log, lay, use, start, fit.model, name, effects, n, order, o)
             if other.delta_bic < best.delta_bic:
                 best = other
     return best
 
 
 def _profile_order(log: Log, lay: Layout, use, start: np.ndarray, model: Model, name: str, effects, n: int,
-                   order: int) -> Profile:
+                   order: int, o: ProfileOptions) -> Profile:
     """:func:`profile` for one lag order (1 for every other effect)."""
     seen: dict[float, float] = {}
 
     def value(x: float) -> float:
         x = round(float(x), 5)
         if x not in seen:
-            seen[x] = settled_log_likelihood(log, lay, with_effect(model, name, x, order), use, start, effects)[0]
+            seen[x] = settled_log_likelihood(log, lay, with_effect(model, name, x, order), use, start, effects,
+                                             iterations=o.iterations)[0]
         return seen[x]
 
-    grid = list(PROFILE_GRID[name])
-    lo_b, hi_b = PROFILE_BOUNDS[name]
+    grid = list(o.grid[name])
+    lo_b, hi_b = o.bounds[name]
     vals = [value(x) for x in grid]
     i = int(np.argmax(vals))
     if i == len(grid) - 1:
@@ -1001,9 +1020,8 @@ def _profile_order(log: Log, lay: Layout, use, start: np.ndarray, model: Model, 
         value(lo_b)
         i += 1
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    if hi - lo > PROFILE_TOL[name]:       # Brent's bounded search in the bracket (parabolic steps, golden fallback)
-        minimize_scalar(lambda x: -value(x), bounds=(lo, hi), method="bounded",
-                        options={"xatol": PROFILE_TOL[name] / 2})
+    if hi - lo > o.tol[name]:       # Brent's bounded search in the bracket (parabolic steps, golden fallback)
+        minimize_scalar(lambda x: -value(x), bounds=(lo, hi), method="bounded", options={"xatol": o.tol[name] / 2})
     best = max(seen, key=seen.get)
     gain = float(seen[best] - value(0.0))
     return Profile(effect=name, value=float(best), gain=gain, n_data=n, grid=sorted(seen.items()), order=order)
@@ -1016,14 +1034,14 @@ def residual_rows(log: Log, lay: Layout, use) -> int:
 
 
 def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=(),
-                           rounds: int = 1, tol: float = 1.0):
+                           rounds: int = 1, tol: float = 1.0, iterations: int = ProfileOptions.iterations):
     """(log-likelihood with the noise levels concentrated out, model) after settling ``model`` with ``effects``
     on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
     fixed), so two models compare as a likelihood ratio on the same data. With ``rounds`` > 1 the noise step and
     the second LM repeat until the log-likelihood moves by less than ``tol`` nats (an effect whose parameters move
-    the poses far, as a latency does, needs them)."""
+    the poses far, as a latency does, needs them); ``iterations`` bounds the first LM (half as many after)."""
     problem = Problem(log, lay, model, use, start, effects)
-    st, _ = least_squares(problem, state(start, model, effects), max_iterations=PROFILE_ITERATIONS)
+    st, _ = least_squares(problem, state(start, model, effects), max_iterations=iterations)
     model = with_state(model, st, effects)
     ll = -np.inf
     for _ in range(rounds):
@@ -1032,7 +1050,7 @@ def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.n
             model = noise_effects_step(problem, st, model)
             model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
         problem = Problem(log, lay, model, use, st.poses, effects)
-        st, _ = least_squares(problem, st, max_iterations=PROFILE_ITERATIONS // 2)
+        st, _ = least_squares(problem, st, max_iterations=iterations // 2)
         model = with_state(model, st, effects)
         last, ll = ll, _concentrated_log_likelihood(problem, st)
         if abs(ll - last) < tol:
@@ -1118,7 +1136,7 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     profiles = []
     for i, name in enumerate(profiled):
         progress.stage(f"{name} profile", None)
-        prof = profile(log, out, name)
+        prof = profile(log, out, name, options=options.profile, knot_dt=options.coarse_knot_dt)
         profiles.append(prof)
         start = with_effect(start, name, prof.value, prof.order)
         out = fit(log, start, seed=seed, progress=progress,
