@@ -112,6 +112,10 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     pred = diag["predictive"]                                # open-loop error grows with the horizon
     assert pred["horizons_s"][0] == 0 and set(pred["channels"]) == {"reading", "bearing"}
     assert all(v[-1] > v[0] for v in pred["channels"].values())
+    friction = next(c for c in diag["candidates"] if c["effect"] == "surface_friction")
+    assert set(friction["orders"]) == {"1", "2", "3", "4"}                  # every member fitted, the best kept
+    assert friction["delta_bic"] == min(friction["orders"].values())
+    assert f"surface_friction:{friction['order']}" in (tmp_path / "diag" / "report.html").read_text()
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
 
 

@@ -108,6 +108,23 @@ def test_verdict_rule():
     assert D.verdict([cand("camera_latency", -172, 98.01), cand("actuator_lag", -168.91, 98.68)], [strong])[0] == "camera_latency"
 
 
+def test_a_family_keeps_its_best_member_and_says_how_to_add_it():
+    """Members of one family compete by delta BIC; the kept one records every member's and names itself
+    ``NAME:ORDER`` for ``calibrate --effect``; one-form effects pass through."""
+    fam = [D.Candidate("surface_friction", "motion", dbic, float("nan"), "", 0.0, order=k)
+           for k, dbic in ((1, -13.4), (2, -3.9), (3, 32.8), (4, 95.5))]
+    one = cand("camera_latency", 9.2, float("nan"))
+    kept = [([*fam, one])[i] for i in D.best_of_family([*fam, one])]
+    assert [c.effect for c in kept] == ["surface_friction", "camera_latency"]
+    best = kept[0]
+    assert best.order == 1 and best.spec == "surface_friction:1" and kept[1].spec == "camera_latency"
+    assert best.orders == {1: -13.4, 2: -3.9, 3: 32.8, 4: 95.5} and not kept[1].orders
+    assert best.to_json()["order"] == 1 and best.to_json()["orders"]["4"] == 95.5
+    (words,) = D.family_words(kept, "surface_friction")
+    assert "BIC chose order 1" in words and "--effect surface_friction:1" in words
+    assert D.family_words(kept, "camera_latency") == [] and D.family_words(kept, "none") == []
+
+
 def test_effects_command_lists_the_catalog():
     r = cli("effects")
     assert r.returncode == 0
