@@ -120,6 +120,7 @@ def test_a_family_keeps_its_best_member_and_says_how_to_add_it():
     assert best.order == 1 and best.spec == "surface_friction:1" and kept[1].spec == "camera_latency"
     assert best.orders == {1: -13.4, 2: -3.9, 3: 32.8, 4: 95.5} and not kept[1].orders
     assert best.to_json()["order"] == 1 and best.to_json()["orders"]["4"] == 95.5
+    assert D.Candidate("surface_friction", "motion", -5.0, 1.0, "", 2.5, order=4).spec == "surface_friction"  # default
     (words,) = D.family_words(kept, "surface_friction")
     assert "BIC chose order 1" in words and "--effect surface_friction:1" in words
     assert D.family_words(kept, "camera_latency") == [] and D.family_words(kept, "none") == []

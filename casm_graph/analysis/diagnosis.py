@@ -214,8 +214,11 @@ class Candidate:
 
     @property
     def spec(self) -> str:
-        """The name ``calibrate --effect`` takes for this candidate (``name:order`` for a family member)."""
-        return self.effect if self.order is None else f"{self.effect}:{self.order}"
+        """The name ``calibrate --effect`` takes for this candidate (``name:order`` for a family member other than
+        the default)."""
+        root = REGISTRY.get(self.effect)
+        default = self.order is None or (root is not None and root.order == self.order)
+        return self.effect if default else f"{self.effect}:{self.order}"
 
 
 def family_members(cls) -> list:
