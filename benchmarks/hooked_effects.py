@@ -49,10 +49,10 @@ def one(effect: str, seed: int, minutes: float) -> dict:
                "best_delta_bic": diag.candidates[0].delta_bic if diag.candidates else None,
                "position_rms": [position_rms(log, cal)], "diagnose_over_calibrate": td / tc}
         add = (diag.proposal_effect() if diag.proposal else
-               diag.verdict if diag.verdict != "none" and not diag.verdict.startswith("unexplained") else None)
+               diag.to_add() if diag.verdict != "none" and not diag.verdict.startswith("unexplained") else None)
         if add is not None:
             cal2 = cg.calibrate(log, effects=[add])
-            name = add if isinstance(add, str) else add.name
+            name = add.partition(":")[0] if isinstance(add, str) else add.name
             after = cg.diagnose(log, cal2, before=diag)
             row.update(added=name, fitted=cal2.model.effects.get(name),
                        fitted_std=cal2.model.fit.get("effects_std", {}).get(name),
