@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
 import multiprocessing
 import os
 import shlex
@@ -329,6 +330,24 @@ def command_line(args) -> str:
     return shlex.join(["casm-graph", *args.argv])
 
 
+def steady_heap() -> bool:
+    """Ask glibc to keep freed large blocks for reuse instead of returning them to the kernel: a fit allocates and
+    frees the same large temporaries every iteration, and refaulting their pages cost a quarter of a diagnosis's
+    time (BENCHMARKS.md). The program's own setting, made by the ``casm-graph`` command only; False where the C
+    library is not glibc."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(-3, 1 << 30)) and bool(libc.mallopt(-1, 1 << 30))   # M_MMAP_ and M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        return False
+
+
+def command() -> int:
+    """The ``casm-graph`` executable: the process's heap setting, then :func:`main`."""
+    steady_heap()
+    return main()
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     args = parser().parse_args(argv)
@@ -350,4 +369,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(command())
