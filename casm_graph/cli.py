@@ -332,8 +332,8 @@ def command_line(args) -> str:
 
 def steady_heap() -> bool:
     """Ask glibc to keep freed large blocks for reuse instead of returning them to the kernel: a fit allocates and
-    frees the same large temporaries every iteration, and refaulting their pages cost a quarter of a diagnosis's
-    time (BENCHMARKS.md). The program's own setting, made by the ``casm-graph`` command only; False where the C
+    frees the same large temporaries every iteration, and refaulting their pages cost a quarter of a candidate
+    fit's time (BENCHMARKS.md). The program's own setting, made by the ``casm-graph`` command only; False where the C
     library is not glibc."""
     try:
         libc = ctypes.CDLL("libc.so.6")

@@ -186,6 +186,11 @@ def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     assert cls is two
     inst = AU.instantiate([cls], log)
     np.testing.assert_allclose(AU.theta_from_model(inst, back), [entry[p] for p in e.params])
+    by_name = AU.instantiate(["surface_friction"], log)       # a default instance takes the order back from the entry
+    np.testing.assert_allclose(AU.theta_from_model(by_name, back), [entry[p] for p in e.params])
+    lens = get("lens_distortion")()
+    lens.restore({"k": 0.1, "k4": 0.2, "order": 2})            # any family, through the base hook
+    assert lens.params == ("k", "k4") and lens.order == 2
 
 
 @pytest.mark.parametrize("order", [1, 2])

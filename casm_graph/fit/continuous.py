@@ -108,10 +108,10 @@ def options_of(model: Model) -> CommandGraphOptions:
     for k, v in recorded.items():
         if k not in CommandGraphOptions.__dataclass_fields__ or isinstance(getattr(DEFAULTS, k), ProfileOptions):
             continue                    # the profile's search is not part of the graph
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0 \
-                or (v == 0 and k.endswith("_dt")):
-            raise LogError(f"model.json: fit.options.command_graph.{k} must be a {'positive' if k.endswith('_dt') else 'non-negative'} "
-                           f"number (got {v!r})")
+        spacing = k.endswith("_dt")     # a knot spacing must be positive, a count or tolerance non-negative
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0 or (spacing and v == 0):
+            raise LogError(f"model.json: fit.options.command_graph.{k} must be a "
+                           f"{'positive' if spacing else 'non-negative'} number (got {v!r})")
         known[k] = type(getattr(DEFAULTS, k))(v)
     return replace(DEFAULTS, **known)
 
@@ -899,9 +899,10 @@ def check_effects(effects, log: Log) -> None:
     own ``applicable`` accepts the log (fitted through its hooks, :func:`fit_hooked`)."""
     for e in effects:
         name = e if isinstance(e, str) else e.name
-        if isinstance(e, str) and e.partition(":")[0] in EFFECTS and ":" in e:
-            raise LogError(f"--effect {e}: on continuous commands {e.partition(':')[0]} is profiled in its own forms; "
-                           f"give --effect {e.partition(':')[0]}")
+        base, member, _ = e.partition(":") if isinstance(e, str) else (name, "", "")
+        if member and base in EFFECTS:
+            raise LogError(f"--effect {e}: on continuous commands {base} is profiled in its own forms; "
+                           f"give --effect {base}")
         if name in EFFECTS or name in NOISE_EFFECTS:
             lack = missing_channels(name, log.channels)
             if lack:

@@ -89,7 +89,10 @@ class Effect:
         return {**{p: float(v) for p, v in zip(self.params, theta)}, **({"order": self.order} if self.orders else {})}
 
     def restore(self, entry: dict) -> None:
-        """Take back what ``describe`` recorded beside the parameters (a field's extent) from a model.json entry."""
+        """Take back what ``describe`` recorded beside the parameters from a model.json entry: a family's order
+        (its parameters follow), and in a subclass what else it records (a field's extent)."""
+        if self.orders and entry.get("order") is not None:
+            self.set_order(int(entry["order"]))
 
     # ------------------------------------------------------------------- hooks
     def velocity(self, theta: np.ndarray, v: np.ndarray, ctx: dict) -> np.ndarray:

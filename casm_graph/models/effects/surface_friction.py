@@ -70,8 +70,9 @@ class SurfaceFriction(Effect):
         self.start, self.scale = (0.0,) * len(self.params), (0.02,) * len(self.params)
 
     def restore(self, entry: dict) -> None:
-        if entry.get("order") is not None or entry.get("grid") is not None:
-            self.set_order(int(entry["order"] if entry.get("order") is not None else entry["grid"][0]))
+        super().restore(entry)
+        if entry.get("order") is None and entry.get("grid") is not None:     # written before the family had orders
+            self.set_order(int(entry["grid"][0]))
         if entry.get("extent") is not None:
             self.extent = tuple(float(v) for v in entry["extent"])
 
