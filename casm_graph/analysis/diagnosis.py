@@ -39,6 +39,7 @@ from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.analysis.proposal import ProposalOptions, propose
 from casm_graph.analysis.proposal import words as proposal_words
+from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
 from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
 from casm_graph.graph.augmented import instantiate
@@ -71,6 +72,8 @@ class DiagnoseOptions:
     lookalike_bic: float = 6.0         # supported candidates within this of the best explain the data about equally
     lookalike_relative: float = 0.1    # continuous logs: also within this share of the best's delta BIC (a profile is a
     #                                    short re-optimisation whose settling error grows with the change it makes)
+    screen_share: float = 0.25         # action tables: a candidate is fitted only when the score test predicts a gain
+    #                                    (twice the log-likelihood) of at least this share of its BIC penalty (0: all)
     candidate_rounds: int = 2          # action tables: noise-step rounds fitting each candidate
     candidate_iterations: int = 8      # and LM iterations per round
     folds: int = 3                     # time-blocked held-out folds
@@ -203,6 +206,7 @@ class Candidate:
     heldout_skipped: str = "no in-sample gain (delta BIC >= 0), held-out folds not run"
     order: int | None = None         # a family's member (Effect.orders): its complexity
     orders: dict = field(default_factory=dict)   # every member's delta BIC, by order (the kept one the lowest)
+    screened: bool = False           # not fitted: delta BIC and log-likelihood are the score test's prediction
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
@@ -210,7 +214,7 @@ class Candidate:
                 "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters,
                 **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped}),
                 **({"order": self.order, "orders": {str(k): v for k, v in self.orders.items()}}
-                   if self.orders else {})}
+                   if self.orders else {}), **({"screened": True} if self.screened else {})}
 
     @property
     def spec(self) -> str:
@@ -301,20 +305,32 @@ def _resolve(extra):
     return get(extra) if isinstance(extra, str) else extra
 
 
+SCREENED = "not fitted: the score test predicts too small a gain, held-out folds not run"
+
+
 def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
-                  options: DiagnoseOptions = DEFAULTS):
+                  options: DiagnoseOptions = DEFAULTS, floor: float | None = None):
     """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
 
-    Returns the candidate (held-out score still to come) and the fitted model and poses.
+    Returns the candidate (held-out score still to come) and the fitted model and poses. With ``floor`` (the
+    base's :func:`~casm_graph.analysis.score_test.predicted_floor`) a candidate whose score-test gain is below
+    ``options.screen_share`` of its BIC penalty is not fitted: it returns with the predicted delta BIC,
+    ``screened`` set, and no model.
     """
     t0 = time.perf_counter()
     eff = instantiate([_resolve(extra)], log)[0]
+    order = eff.order if eff.orders else None
+    penalty = eff.free_parameters() * np.log(_n_data(log))
+    gain = predicted_gain(log, base, eff, floor) if floor is not None and options.screen_share > 0 else None
+    if gain is not None and 2.0 * gain < options.screen_share * penalty:
+        return Candidate(eff.name, eff.channel, float(penalty - 2.0 * gain), float("nan"), eff.physics, gain,
+                         {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True), None, None
     f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=options.candidate_rounds,
                        iterations=options.candidate_iterations)
     dll = f.log_likelihood - base.log_likelihood
     dbic = -2.0 * dll + eff.free_parameters() * np.log(_n_data(log))
     c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
-                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=eff.order if eff.orders else None)
+                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=order)
     return c, f.model, f.poses
 
 
@@ -589,13 +605,15 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     members = [m for cls in todo for m in family_members(cls)]
     if progress is not None:
         progress.stage("candidates", len(members), unit="effects")
-    fitted = _parallel(_fit_task, [(log, refit, base, spec(m), o) for m in members], workers, progress, client)
+    floor = predicted_floor(base.problem, base.state) if o.screen_share > 0 else None
+    fitted = _parallel(_fit_task, [(log, refit, base, spec(m), o, floor) for m in members], workers, progress, client)
     keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
     fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
     cands = [c for c, _, _ in fitted]
     # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
     # the verdict, and the folds are most of the cost
-    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, members) if c.delta_bic < o.heldout_gate]
+    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, members)
+                 if c.delta_bic < o.heldout_gate and not c.screened]
     if promising:
         if progress is not None:
             progress.stage("held-out", len(promising) + 1, unit="models")

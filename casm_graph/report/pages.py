@@ -474,7 +474,8 @@ def diagnosis(path: Path, log: Log, diag) -> None:
         + "".join(f"<td>{c['name']} ({c['kind']}) {c['strength']:.3f}</td>" for c in r["covariates"][:3]) + "</tr>"
         for ch, r in diag.channels.items())
     cands = "".join(
-        f"<tr><td style='text-align:left'>{c.spec}</td><td>{c.channel}</td><td>{c.delta_bic:.1f}"
+        f"<tr><td style='text-align:left'>{c.spec}</td><td>{c.channel}</td><td>{'&asymp; ' if c.screened else ''}"
+        f"{c.delta_bic:.1f}"
         + (f"<br><small>by order: {', '.join(f'{k}: {v:.1f}' for k, v in sorted(c.orders.items()))}</small>"
            if c.orders else "") + "</td>"
         f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items() if isinstance(v, (int, float))))}</td>"
@@ -491,7 +492,9 @@ def diagnosis(path: Path, log: Log, diag) -> None:
 Strength: omega squared, the share of residual variance a covariate explains (mean or spread).</p>
 <table><tr><th>channel</th><th>rms</th><th>whiteness p</th><th>strongest</th><th>2nd</th><th>3rd</th></tr>{rows}</table>
 <h2>Candidate effects</h2><p>Sorted by delta BIC (negative favours the effect); held-out: gain in log-likelihood of
-time blocks hidden from the fit. A family (<code>NAME:ORDER</code>) shows the member BIC kept and every member's delta BIC.</p>
+time blocks hidden from the fit. A family (<code>NAME:ORDER</code>) shows the member BIC kept and every member's delta BIC.
+A delta BIC marked &asymp; is the score test's prediction: the candidate was not fitted, its predicted gain
+being too small a share of its BIC penalty.</p>
 <table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>fitted</th><th>physics</th></tr>{cands}</table>
 {f'<p>Not applicable to this log:</p><ul>{skipped}</ul>' if skipped else ''}
 {_before_after_html(diag)}
