@@ -81,6 +81,17 @@ def test_segment_kernel_equals_sparse_factorisation(small):
     assert ml0(x) == pytest.approx(ml0.exact(x), abs=1e-6)      # chain kernel = segment kernel without parameters
 
 
+def test_extreme_noise_levels_have_zero_likelihood_not_an_exception(small):
+    """A sampler's wild step (a noise level of 1e200: a pose block singular, a term overflowing) scores -inf."""
+    _, _, _, ml = small
+    for i in range(len(ml.x_map)):
+        x = ml.x_map.copy()
+        x[i] = 1e200
+        v = ml(x)
+        assert v == -np.inf or np.isfinite(v), (ml.names[i], v)
+    assert np.isfinite(ml(ml.x_map))
+
+
 def test_laplace_agrees_with_the_ekf_likelihood(small):
     """Poses integrated out two ways, Laplace on the graph and the EKF's p(O|lambda): the same curves."""
     log, _, model, ml = small

@@ -306,6 +306,7 @@ def _resolve(extra):
 
 
 SCREENED = "not fitted: the score test predicts too small a gain, held-out folds not run"
+DECIDED = "not needed: a supported candidate lower in BIC by more than the look-alike margin decides the verdict"
 
 
 def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
@@ -428,6 +429,23 @@ def lookalike_words(groups: list[dict]) -> list[str]:
     return out
 
 
+def strong_structures(structure: list[dict], options: DiagnoseOptions = DEFAULTS) -> list[dict]:
+    """The residual structures at least ``options.structure_share`` as strong as the strongest."""
+    return [s for s in structure if s["strength"] >= options.structure_share * structure[0]["strength"]]
+
+
+def built_for(strong: list[dict], explains: dict) -> Callable:
+    """Whether a candidate is the effect built for one of the ``strong`` structures (its class's ``explains``)."""
+    def matches(c) -> bool:
+        return any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
+    return matches
+
+
+def is_supported(c: Candidate, matches: Callable, options: DiagnoseOptions = DEFAULTS) -> bool:
+    """BIC supports ``c`` strongly and a second line agrees: the held-out score, or the structure it is built for."""
+    return c.delta_bic <= options.bic_support and (c.heldout_nll_drop > options.heldout_support or matches(c))
+
+
 def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None,
             options: DiagnoseOptions = DEFAULTS) -> tuple[str, list[str]]:
     """The verdict and the sentences that explain it.
@@ -443,13 +461,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     words = []
     explains = explains or {}
     o = options
-    strong = [s for s in structure if s["strength"] >= o.structure_share * structure[0]["strength"]]
-
-    def matches(c):
-        return any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
-
-    supported = [c for c in cands if c.delta_bic <= o.bic_support and (c.heldout_nll_drop > o.heldout_support
-                                                                       or matches(c))]
+    strong = strong_structures(structure, o)
+    matches = built_for(strong, explains)
+    supported = [c for c in cands if is_supported(c, matches, o)]
     if supported:
         lead = min(c.delta_bic for c in supported)
         tied = [c for c in supported if c.delta_bic - lead < o.bic_tie]
@@ -472,6 +486,11 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
         if rest:
             words.append("Also supported, less strongly: " + ", ".join(
                 f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in rest) + ".")
+        unscored = [c for c in cands if c.heldout_skipped == DECIDED and c.delta_bic <= o.bic_support
+                    and c not in supported]
+        if unscored:
+            words.append("Also lowering BIC strongly, not scored on held-out folds (the verdict does not depend on "
+                         "them): " + ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in unscored) + ".")
         return best.effect, words
     if structure:
         s = structure[0]
@@ -610,27 +629,56 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
     fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
     cands = [c for c, _, _ in fitted]
-    # held-out folds for the base and every candidate that improves BIC at all: the others cannot be
-    # the verdict, and the folds are most of the cost
-    promising = [(c, m, p, cls) for (c, m, p), cls in zip(fitted, members)
-                 if c.delta_bic < o.heldout_gate and not c.screened]
-    if promising:
-        if progress is not None:
-            progress.stage("held-out", len(promising) + 1, unit="models")
-        present_wire = [spec(type(e)) for e in base.effects]
-        held = _parallel(_heldout_task, [(log, base.model, base.poses, present_wire, o)]
-                         + [(log, m, p, present_wire + [spec(cls)], o) for _, m, p, cls in promising],
-                         workers, progress, client)
-        for (c, _, _, _), h in zip(promising, held[1:]):
-            c.heldout_nll_drop = float(h - held[0])
-    cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     struct = structures(rep, o)
-    v, words = verdict(cands, struct, {cls.name: cls.explains for cls in pool}, o)
+    explains = {cls.name: cls.explains for cls in pool}
+    heldout_rounds(log, base, fitted, members, built_for(strong_structures(struct, o), explains), workers,
+                   progress, client, o)
+    cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
+    v, words = verdict(cands, struct, explains, o)
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o)
     return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
                      predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, o.proposal),
                      options=o)
+
+
+def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
+                   progress=None, client=None, options: DiagnoseOptions = DEFAULTS) -> None:
+    """Held-out scores (``heldout_nll_drop``) for the fitted candidates that improve BIC, lowest delta BIC first,
+    ``workers`` models a round (the base model with the first): once one is supported (:func:`is_supported`),
+    only those within the look-alike margin of it can still change the verdict or its look-alike group, and the
+    rest keep ``heldout_skipped`` = :data:`DECIDED`. The folds are most of a diagnosis's cost.
+
+    ``fitted``: (candidate, model, poses) per member of ``members`` (their classes)."""
+    o = options
+    queue = sorted((i for i, (c, _, _) in enumerate(fitted) if c.delta_bic < o.heldout_gate and not c.screened),
+                   key=lambda i: fitted[i][0].delta_bic)
+    if not queue:
+        return
+    if progress is not None:
+        progress.stage("held-out", len(queue) + 1, unit="models")
+    present = [spec(type(e)) for e in base.effects]
+    margin = max(o.bic_tie, o.lookalike_bic)
+    base_score = None
+    while queue:
+        take = queue[:max(workers - (base_score is None), 1)]
+        queue = queue[len(take):]
+        tasks = ([(log, base.model, base.poses, present, o)] if base_score is None else []) + [
+            (log, fitted[i][1], fitted[i][2], present + [spec(members[i])], o) for i in take]
+        held = _parallel(_heldout_task, tasks, workers, progress, client)
+        if base_score is None:
+            base_score, held = held[0], held[1:]
+        for i, h in zip(take, held):
+            fitted[i][0].heldout_nll_drop = float(h - base_score)
+        lead = next((c for c, _, _ in sorted(fitted, key=lambda f: f[0].delta_bic)
+                     if np.isfinite(c.heldout_nll_drop) and is_supported(c, matches, o)), None)
+        if lead is not None:
+            left = [i for i in queue if fitted[i][0].delta_bic < lead.delta_bic + margin]
+            for i in set(queue) - set(left):
+                fitted[i][0].heldout_skipped = DECIDED
+            if progress is not None and len(left) < len(queue):
+                progress.step(len(queue) - len(left))
+            queue = left
 
 
 def chosen_candidates(candidates, extra_effects=()) -> set | None:

@@ -579,8 +579,12 @@ class MarginalLikelihood(NoiseLikelihood):
         return float(ldata + 0.5 * gHg - 0.5 * logdet)
 
     def __call__(self, x) -> float:
-        """log p(O | x), up to a constant: the exact Laplace value (poses and parameters integrated)."""
-        return self.exact(x) if self.n_theta else self.poses_only(x)
+        """log p(O | x), up to a constant: the exact Laplace value (poses and parameters integrated); -inf where
+        the noise levels are so extreme that a pose block is singular or a term overflows (a sampler's wild step)."""
+        try:
+            return self.exact(x) if self.n_theta else self.poses_only(x)
+        except (ZeroDivisionError, OverflowError):
+            return -np.inf
 
     def parameter_covariance(self, x) -> np.ndarray:
         """Laplace covariance (n_theta, n_theta) of table, polynomial and effect parameters at noise levels ``x``."""

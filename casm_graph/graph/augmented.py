@@ -243,14 +243,14 @@ class EffectProblem:
         Ht = np.zeros((S, 3, n_t))
         if jacobians:
             rows3 = np.arange(S)
-            for c in range(3):
-                np.add.at(Ht, (rows3, slice(None), 3 * lay.seg_action + c), dv["own"][:, :, c])
-                np.add.at(Ht, (rows3, slice(None), 3 * self.prev_row + c), dv["prev"][:, :, c])
+            own, prev = dv["own"] * w[:, :, None], dv["prev"] * w[:, :, None]
+            for c in range(3):             # one row per step in each statement: no repeated index, no add.at
+                Ht[rows3, :, 3 * lay.seg_action + c] += own[:, :, c]
+                Ht[rows3, :, 3 * self.prev_row + c] += prev[:, :, c]
             if dv["theta"] is not None:
-                Ht[:, :, 3 * self.A + self.D:] = dv["theta"]
+                Ht[:, :, 3 * self.A + self.D:] = dv["theta"] * w[:, :, None]
             Ha = (Ha + dv["pose"]) * w[:, :, None]
             Hb = Hb * w[:, :, None]
-            Ht *= w[:, :, None]
         # sightings
         ctx = self.sensor_context(st)
         fn = self._sensor_fn(ctx)

@@ -75,26 +75,77 @@ def select_inverse(D, B):
     return cov, cross, logdet
 
 
-@njit(cache=True)
 def _chain_solve(D, B, R, lam):
-    """H^-1 R for the block-tridiagonal H = blocks (D + lam I, B) and many right-hand sides R (K, 3, m)."""
-    K = D.shape[0]
-    Sinv = np.empty_like(D)
-    Y = np.empty_like(R)
-    eye = np.eye(3) * lam
+    """H^-1 R for the block-tridiagonal H = blocks (D + lam I, B) and many right-hand sides R (K, 3, m), by
+    :func:`_chain_factor` and :func:`_chain_apply`; ``numpy.linalg.LinAlgError`` when a pivot is not positive
+    definite (singular at this damping)."""
+    Sinv, G, ok = _chain_factor(np.ascontiguousarray(D), np.ascontiguousarray(B), float(lam), PIVOT_TOL)
+    if not ok:
+        raise np.linalg.LinAlgError("the pose chain is singular at this damping")
+    X = np.array(R, dtype=float, order="C", copy=True)
+    _chain_apply(Sinv, G, B, X)
+    return X
+
+
+@njit(cache=True)
+def _coupling_product(F, X):
+    """sum_i F[i]^T X[i] for F (K, 3, n) and X (K, 3, m), skipping F's zero columns: a pose couples to a few
+    parameters (its action's velocities, the polynomial, the effects), a few percent of the dense block."""
+    K, _, n = F.shape
+    m = X.shape[2]
+    out = np.zeros((n, m))
     for i in range(K):
-        S = D[i] + eye
-        Y[i] = R[i]
-        if i > 0:
-            G = np.ascontiguousarray(B[i - 1].T) @ Sinv[i - 1]
-            S = S - G @ B[i - 1]
-            Y[i] = Y[i] - G @ Y[i - 1]
-        Sinv[i] = np.linalg.inv(S)
-    Xs = np.empty_like(R)
-    Xs[K - 1] = Sinv[K - 1] @ Y[K - 1]
-    for i in range(K - 2, -1, -1):
-        Xs[i] = Sinv[i] @ (Y[i] - B[i] @ Xs[i + 1])
-    return Xs
+        for c in range(n):
+            f0, f1, f2 = F[i, 0, c], F[i, 1, c], F[i, 2, c]
+            if f0 != 0.0 or f1 != 0.0 or f2 != 0.0:
+                for j in range(m):
+                    out[c, j] += f0 * X[i, 0, j] + f1 * X[i, 1, j] + f2 * X[i, 2, j]
+    return out
+
+
+@njit(cache=True)
+def _parameter_blocks(Ha, Hb, Ht, ae, knot, Jp, Jt, eo):
+    """The parameter parts of J^T J and J^T e: coupling F (K, 3, n), the parameters' block and gradient.
+
+    Motion row blocks (3 rows per step, Jacobians ``Ha``, ``Hb`` on consecutive poses and ``Ht`` on the
+    parameters) and sighting rows (``Jp`` on pose ``knot``, ``Jt``), each touching a few of the n parameters
+    (its action's velocities, the polynomial, the effects): only those columns are visited."""
+    S, _, n = Ht.shape
+    F = np.zeros((S + 1, 3, n))
+    Htt = np.zeros((n, n))
+    gt = np.zeros(n)
+    cols = np.empty(n, np.int64)
+    for s in range(S):
+        m = 0
+        for c in range(n):
+            if Ht[s, 0, c] != 0.0 or Ht[s, 1, c] != 0.0 or Ht[s, 2, c] != 0.0:
+                cols[m] = c
+                m += 1
+        for u in range(m):
+            c = cols[u]
+            for i in range(3):
+                F[s, i, c] += Ha[s, 0, i] * Ht[s, 0, c] + Ha[s, 1, i] * Ht[s, 1, c] + Ha[s, 2, i] * Ht[s, 2, c]
+                F[s + 1, i, c] += Hb[s, 0, i] * Ht[s, 0, c] + Hb[s, 1, i] * Ht[s, 1, c] + Hb[s, 2, i] * Ht[s, 2, c]
+            gt[c] += Ht[s, 0, c] * ae[s, 0] + Ht[s, 1, c] * ae[s, 1] + Ht[s, 2, c] * ae[s, 2]
+            for v in range(m):
+                d = cols[v]
+                Htt[c, d] += Ht[s, 0, c] * Ht[s, 0, d] + Ht[s, 1, c] * Ht[s, 1, d] + Ht[s, 2, c] * Ht[s, 2, d]
+    for r in range(Jt.shape[0]):
+        m = 0
+        for c in range(n):
+            if Jt[r, c] != 0.0:
+                cols[m] = c
+                m += 1
+        k = knot[r]
+        for u in range(m):
+            c = cols[u]
+            jc = Jt[r, c]
+            for i in range(3):
+                F[k, i, c] += Jp[r, i] * jc
+            gt[c] += jc * eo[r]
+            for v in range(m):
+                Htt[c, cols[v]] += jc * Jt[r, cols[v]]
+    return F, Htt, gt
 
 
 def normal_equations(Ha, Hb, Ht, ae, knot, Jp, Jt, eo, prior, pe, poses_only: bool = False) -> tuple:
@@ -114,15 +165,10 @@ def normal_equations(Ha, Hb, Ht, ae, knot, Jp, Jt, eo, prior, pe, poses_only: bo
     gp += at @ (Jp * eo[:, None])                                                        # its sightings
     if poses_only:
         return D, B, np.zeros((K, 3, 0)), gp, np.zeros((0, 0)), np.zeros(0)
-    n = Ht.shape[2]
-    F = np.zeros((K, 3, n))
-    F[:-1] += np.einsum("nki,nkj->nij", Ha, Ht)
-    F[1:] += np.einsum("nki,nkj->nij", Hb, Ht)
-    F += (at @ (Jp[:, :, None] * Jt[:, None, :]).reshape(len(knot), 3 * n)).reshape(K, 3, n)
-    At = Ht.reshape(-1, n)
-    Htt = At.T @ At + Jt.T @ Jt + np.diag(prior ** 2)
-    gt = At.T @ ae.ravel() + Jt.T @ eo + prior * pe
-    return D, B, F, gp, Htt, gt
+    F, Htt, gt = _parameter_blocks(*(np.ascontiguousarray(a, dtype=float) for a in (Ha, Hb, Ht, ae)),
+                                   np.ascontiguousarray(knot, dtype=np.int64),
+                                   *(np.ascontiguousarray(a, dtype=float) for a in (Jp, Jt, eo)))
+    return D, B, F, gp, Htt + np.diag(prior ** 2), gt + prior * pe
 
 
 def solve_arrow(D, B, F, gp, Htt, gt, lam):
@@ -133,13 +179,17 @@ def solve_arrow(D, B, F, gp, Htt, gt, lam):
     the dense Schur complement on the parameters.
     """
     n = F.shape[2]
-    R = np.concatenate([gp[:, :, None], F], axis=2)
-    Xs = _chain_solve(D, B, np.ascontiguousarray(R), lam)
+    Sinv, G, ok = _chain_factor(np.ascontiguousarray(D), np.ascontiguousarray(B), float(lam), PIVOT_TOL)
+    if not ok:
+        raise np.linalg.LinAlgError("the pose chain is singular at this damping")
+    Xs = np.empty((len(D), 3, n + 1))
+    Xs[:, :, 0], Xs[:, :, 1:] = gp, F
+    _chain_apply(Sinv, G, np.ascontiguousarray(B), Xs)              # Hpp^-1 [gp, F]
     if n == 0:
         return -Xs[:, :, 0], np.zeros(0)
-    Ff, Xf = F.reshape(-1, n), Xs.reshape(-1, n + 1)
-    Sc = Htt + lam * np.eye(n) - Ff.T @ Xf[:, 1:]
-    dt = -np.linalg.solve(Sc, gt - Ff.T @ Xf[:, 0])
+    FX = _coupling_product(np.ascontiguousarray(F), Xs)          # F^T Hpp^-1 [gp, F]
+    Sc = Htt + lam * np.eye(n) - 0.5 * (FX[:, 1:] + FX[:, 1:].T)
+    dt = -np.linalg.solve(Sc, gt - FX[:, 0])
     dp = -(Xs[:, :, 0] + Xs[:, :, 1:] @ dt)
     return dp, dt
 
