@@ -58,6 +58,26 @@ def test_spread_dependence_is_found_too():
     assert tests[0]["kind"] == "spread" and tests[0]["p"] < 1e-6
 
 
+def test_a_spread_from_leverage_alone_is_not_structure():
+    """Sightings that pin their pose leave residuals smaller than their noise (variance 1 - h): without the
+    leverage the spread follows distance strongly; standardised by it, nothing remains. Noise that really grows
+    with distance is still found."""
+    rng = np.random.default_rng(4)
+    n = 6000
+    d = rng.uniform(0.5, 3.0, n)
+    h = 0.6 * np.exp(-1.5 * (d - 0.5))                      # near sightings pin their pose
+    r = rng.normal(size=n) * np.sqrt(1 - h)
+    bare = D.covariate_tests(channel(r, distance=d))[0]
+    assert bare["name"] == "distance" and bare["kind"] == "spread" and bare["strength"] > 0.01 and bare["p"] < 1e-6
+    ch = channel(r, distance=d)
+    ch.leverage = h
+    top = D.covariate_tests(ch)[0]
+    assert top["strength"] < 0.003 or top["p"] > 1e-3, top
+    ch.residual = r * (1 + 0.5 * d)                            # and a real growth with distance
+    grown = D.covariate_tests(ch)[0]
+    assert grown["name"] == "distance" and grown["kind"] == "spread" and grown["p"] < 1e-6
+
+
 def test_motion_channels_are_tested_for_their_mean_only():
     # smoothing residuals' spread follows leverage, not physics
     rng = np.random.default_rng(4)

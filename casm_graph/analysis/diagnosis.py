@@ -136,19 +136,23 @@ def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]
 
 
 MOTION_CHANNELS = ("forward", "lateral", "turn")
+MIN_SHARE = 0.05        # the least share of its noise a residual keeps (1 - leverage) when standardised
 
 
 def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[dict]:
     """Mean (and for sensor channels spread) dependence of a channel's residuals on each covariate, strongest first.
 
     Motion residuals are smoothing residuals: their spread follows each step's leverage (how many
-    sightings pin it) rather than physics, so motion channels are tested for their mean only.
+    sightings pin it) rather than physics, so motion channels are tested for their mean only. A sensor
+    channel's spread is tested on its residuals standardised by their leverage (``ch.leverage``: r / sqrt(1 - h)),
+    so that sightings which pin their pose do not fake a spread that follows distance.
     """
     order = np.argsort(ch.time, kind="stable")
     r = ch.residual
     motion = ch.name in MOTION_CHANNELS
     infl = _inflation(r[order])
-    dev = np.abs(r - np.median(r))
+    rs = r if ch.leverage is None else r / np.sqrt(np.clip(1.0 - np.nan_to_num(ch.leverage), MIN_SHARE, 1.0))
+    dev = np.abs(rs - np.median(rs))
     infl_dev = _inflation(dev[order])
     out = []
     for name, x in ch.covariates.items():

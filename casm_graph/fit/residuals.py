@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from casm_graph.graph import chain
 from casm_graph.graph.augmented import AState, EffectProblem
 from casm_graph.graph.table import Layout
 from casm_graph.io.log import Log, wrap
@@ -99,6 +100,27 @@ class Channel:
     covariates: dict              # name -> (n,) array; NaN where unknown
     command: np.ndarray | None = field(default=None, repr=False)   # motion: the model's velocity on this axis
     span: np.ndarray | None = field(default=None, repr=False)      # motion: s each residual covers
+    leverage: np.ndarray | None = field(default=None, repr=False)  # sightings: the share of each one's noise the
+    #                                                                smoothed pose absorbs (:func:`sighting_leverage`)
+
+
+def sighting_leverage(problem: EffectProblem, st: AState) -> dict[str, np.ndarray]:
+    """Per observation, the leverage h = j Sigma j^T of its reading and of its bearing row (whitened pose Jacobian
+    j, the smoothed pose's covariance Sigma with the parameters held; NaN where not measured). A residual's
+    variance is its noise's times 1 - h: a sighting that pins its pose (near, where the sensor curve is steep)
+    leaves a smaller residual, which a test of the residuals' spread would read as noise growing with distance."""
+    D, B = chain.information_blocks(problem, st)
+    try:
+        cov = chain.select_inverse(D, B)[0]
+    except np.linalg.LinAlgError:
+        return {}
+    r = problem.rows(st)
+    out = {}
+    for name, J, idx in (("reading", r.reading_J[0], problem.r_idx), ("bearing", r.bearing_J, problem.b_idx)):
+        h = np.full(len(problem.log.obs_t), np.nan)
+        h[idx] = np.einsum("ni,nij,nj->n", J, cov[problem.obs_knot[idx]], J)
+        out[name] = h
+    return out
 
 
 def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
@@ -127,10 +149,12 @@ def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
             "speed": np.hypot(ctx["velocity"][:, 0], ctx["velocity"][:, 1]), "turn_rate": ctx["velocity"][:, 2],
             "distance": pred["distance"], "bearing": pred["bearing"],
             "image_angle": wrap(pred["bearing"] - problem.pan), "landmark": log.obs_landmark.astype(float)}
+    lev = sighting_leverage(problem, st)
     for name, raw, sigma in (("reading", terms["reading"], problem.reading_sigma * terms["scale"]),
                              ("bearing", terms["bearing"], np.full(len(ot), problem.bearing_sigma))):
         ok = np.isfinite(raw) & problem.obs_mask & (terms["weight"] > 0.5)   # a mixture's outliers are explained
         if not ok.any():
             continue                      # a channel the log does not measure (ranges only)
-        out[name] = Channel(name, (raw / sigma)[ok], raw[ok], ot[ok], {k: c[ok] for k, c in scov.items()})
+        out[name] = Channel(name, (raw / sigma)[ok], raw[ok], ot[ok], {k: c[ok] for k, c in scov.items()},
+                            leverage=lev[name][ok] if name in lev else None)
     return out
