@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import casm_graph as cg
-from casm_graph.analysis.diagnosis import proposal_for
+from casm_graph.analysis.diagnosis import discover
+from casm_graph.analysis.proposal import covariate
 from casm_graph.cli import main
 from casm_graph.io.log import LogError
 from casm_graph.models.effects import of_model
@@ -21,6 +22,16 @@ from .worlds.independent_world import generate
 
 TERMS = {"forward: v_forward*cos(heading)": -0.08, "forward: v_forward*sin(heading)": 0.12, "turn: speed": 0.2,
          "lateral: sin(2pi t/120s)": 0.01}
+
+
+def test_a_proposal_is_named_by_its_strongest_terms_covariate():
+    def prop(t_values):
+        return {"axes": {a: {"t_values": {k: v for k, v in t_values.items() if k.startswith(a)}}
+                         for a in {k.split(":")[0] for k in t_values}}}
+    assert covariate(prop({"forward: v_forward*cos(heading)": 6.0, "turn: speed": -9.0})) == "speed"
+    assert covariate(prop({"forward: v_forward*sin(2pi t/120s)": 7.0, "lateral: x": 5.5})) == "time"
+    assert covariate(prop({"turn: w*y": 8.0})) == "y"
+    assert covariate(prop({"lateral: |w|": 5.1})) == "turn_rate"
 
 
 def test_a_proposal_is_its_equation_and_survives_model_json_and_pickle():
@@ -80,7 +91,10 @@ def test_a_heading_dependent_speed_is_proposed_added_and_the_error_falls(tmp_pat
     assert set(terms) <= {"forward: v_forward*cos(heading)", "forward: v_forward*sin(heading)"}, terms
     assert "Add it with" in diag.summary()
     assert diag.proposal["options"] == dataclasses.asdict(cg.ProposalOptions())            # recorded with it
-    assert proposal_for(diag.verdict, diag.residuals, cg.ProposalOptions(min_t=1e9)) == {}   # options passed in
+    assert discover(diag.verdict, [], diag.residuals, cg.ProposalOptions(min_t=1e9))[2] == {}   # options passed in
+    v, words, found = discover("none", ["fits"], diag.residuals, cg.ProposalOptions())   # the regression as last test
+    assert v == "unexplained:heading" and found["terms"] == terms and "sparse regression" in words[0]
+    assert discover("none", ["fits"], diag.residuals, cg.ProposalOptions(min_t=1e9)) == ("none", ["fits"], {})
 
     cal2 = cg.calibrate(log, effects=[diag.proposal_effect()])
     got = cal2.model.effects["proposal"]

@@ -23,7 +23,7 @@ from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, best_of_family,
                                            channel_report, chosen_candidates, family_members, family_words,
-                                           lookalike_words, lookalikes, proposal_for, structures, verdict)
+                                           lookalike_words, lookalikes, discover, structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel, place
@@ -190,6 +190,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     names = [*(n for n in CT.EFFECTS if n not in skipped and wanted(n)), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
     v, words = verdict(cands, struct, {n: kinds[n].explains for n in names}, o)
+    v, words, found = discover(v, words, chs, o.proposal)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
                        options=o)
     words += family_words(cands, v) + lookalike_words(alike)
@@ -198,7 +199,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
                      "residual structure it is built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
                      set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, problem, model, full), proposal=proposal_for(v, chs, o.proposal),
+                     predictive=open_loop_error(log, problem, model, full), proposal=found,
                      options=o)
 
 

@@ -38,6 +38,7 @@ from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.analysis.proposal import ProposalOptions, propose
+from casm_graph.analysis.proposal import covariate as proposal_covariate
 from casm_graph.analysis.proposal import words as proposal_words
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
@@ -639,11 +640,11 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
                    progress, client, o)
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     v, words = verdict(cands, struct, explains, o)
+    v, words, found = discover(v, words, chs, o.proposal)
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o)
     return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=proposal_for(v, chs, o.proposal),
-                     options=o)
+                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=found, options=o)
 
 
 def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
@@ -696,10 +697,24 @@ def chosen_candidates(candidates, extra_effects=()) -> set | None:
     return set(candidates)
 
 
-def proposal_for(verdict_name: str, chs: dict, options: ProposalOptions) -> dict:
-    """The sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`, searching as ``options``
-    say) when the verdict is ``unexplained:<covariate>``: structure no catalog effect explains."""
-    return propose(chs, options) if verdict_name.startswith("unexplained:") else {}
+def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions) -> tuple[str, list[str], dict]:
+    """The verdict, its words and the sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`,
+    searching as ``options`` say). An ``unexplained:<covariate>`` verdict gets the proposal; so does ``none``
+    when the regression finds terms that pass its own test, and the verdict becomes ``unexplained:`` the strongest
+    term's covariate: the covariate tests bin one covariate at a time and miss a dependence on heading that the
+    trajectory's smoothing spreads thin, which a term such as ``v_forward*sin(heading)`` catches."""
+    if verdict_name.startswith("unexplained:"):
+        return verdict_name, words, propose(chs, options)
+    if verdict_name != "none":
+        return verdict_name, words, {}
+    found = propose(chs, options)
+    if not found:
+        return verdict_name, words, {}
+    cov = proposal_covariate(found)
+    return f"unexplained:{cov}", [
+        "No catalog effect is supported and no single covariate's bins show material structure, but a sparse "
+        f"regression of the motion residuals finds terms that pass its test (|t| >= {options.min_t:g}): something "
+        f"the model and the catalog lack depends on {cov}."], found
 
 
 def open_loop_error(log: Log, problem, st) -> dict:

@@ -20,7 +20,10 @@ import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.linear_model import LassoLarsIC
 
-from casm_graph.models.effects.proposal import AXES, equation, features, library, periodic_terms, with_own
+from casm_graph.models.effects.proposal import AXES, OWN, PERIODIC, equation, features, library, periodic_terms, with_own
+
+COVARIATE = {"cos(heading)": "heading", "sin(heading)": "heading", "x": "x", "y": "y", "t": "time",
+             "speed": "speed", "v_forward": "speed", "v_lateral": "speed", "w": "turn_rate", "|w|": "turn_rate"}
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,17 @@ def propose(chs: dict, options: ProposalOptions | None = None) -> dict:
     return {"terms": terms, "equation": equation(terms),
             "axes": {f["axis"]: {k: f[k] for k in ("r2", "blocks", "t_values", "period_tried_s")} for f in fits},
             "options": asdict(o)}
+
+
+def covariate(proposal: dict) -> str:
+    """The diagnosis covariate of the proposal's strongest term (largest |t|): heading, x, y, time, speed or
+    turn_rate."""
+    axis, term = max(((a, k) for a, f in proposal["axes"].items() for k in f["t_values"]),
+                     key=lambda ak: abs(proposal["axes"][ak[0]]["t_values"][ak[1]]))
+    base = term.split(": ", 1)[1]
+    if base.startswith(OWN[axis] + "*"):
+        base = base[len(OWN[axis]) + 1:]
+    return "time" if PERIODIC.match(base) else COVARIATE.get(base, base)
 
 
 def words(proposal: dict) -> str:
