@@ -334,7 +334,7 @@ def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.Eff
     f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=options.candidate_rounds,
                        iterations=options.candidate_iterations)
     dll = f.log_likelihood - base.log_likelihood
-    dbic = -2.0 * dll + eff.free_parameters() * np.log(_n_data(log))
+    dbic = -2.0 * dll + penalty
     c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
                   f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=order)
     return c, f.model, f.poses

@@ -109,12 +109,12 @@ def sighting_leverage(problem: EffectProblem, st: AState) -> dict[str, np.ndarra
     j, the smoothed pose's covariance Sigma with the parameters held; NaN where not measured). A residual's
     variance is its noise's times 1 - h: a sighting that pins its pose (near, where the sensor curve is steep)
     leaves a smaller residual, which a test of the residuals' spread would read as noise growing with distance."""
-    D, B = chain.information_blocks(problem, st)
+    r = problem.rows(st)
+    D, B = chain.information_blocks(problem, st, rows=r)
     try:
         cov = chain.select_inverse(D, B)[0]
     except np.linalg.LinAlgError:
         return {}
-    r = problem.rows(st)
     out = {}
     for name, J, idx in (("reading", r.reading_J[0], problem.r_idx), ("bearing", r.bearing_J, problem.b_idx)):
         h = np.full(len(problem.log.obs_t), np.nan)

@@ -22,9 +22,10 @@ PIVOT_TOL = 1e-12                   # a pivot below this share of its variable's
 CHUNK_DOUBLES = 4_000_000           # right-hand sides of the chain solves go through in blocks of about this size
 
 
-def information_blocks(problem: Problem, st: State) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal (K, 3, 3) and upper off-diagonal (K-1, 3, 3) blocks of J^T J over the poses."""
-    r = problem.rows(st)
+def information_blocks(problem: Problem, st: State, rows=None) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal (K, 3, 3) and upper off-diagonal (K-1, 3, 3) blocks of J^T J over the poses (``rows``:
+    ``problem.rows(st)`` when the caller has them already)."""
+    r = problem.rows(st) if rows is None else rows
     K = problem.lay.n_poses
     Ha, Hb, _ = r.action_J
     D = np.zeros((K, 3, 3))
@@ -75,13 +76,20 @@ def select_inverse(D, B):
     return cov, cross, logdet
 
 
+def factor_chain(D, B, ridge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_chain_factor` of the block-tridiagonal H + ridge I: (S^-1, G, B as contiguous) for
+    :func:`_chain_apply`; ``numpy.linalg.LinAlgError`` when a pivot is not positive definite."""
+    B = np.ascontiguousarray(B, dtype=float)
+    Sinv, G, ok = _chain_factor(np.ascontiguousarray(D, dtype=float), B, float(ridge), PIVOT_TOL)
+    if not ok:
+        raise np.linalg.LinAlgError("the pose chain is not positive definite")
+    return Sinv, G, B
+
+
 def _chain_solve(D, B, R, lam):
     """H^-1 R for the block-tridiagonal H = blocks (D + lam I, B) and many right-hand sides R (K, 3, m), by
-    :func:`_chain_factor` and :func:`_chain_apply`; ``numpy.linalg.LinAlgError`` when a pivot is not positive
-    definite (singular at this damping)."""
-    Sinv, G, ok = _chain_factor(np.ascontiguousarray(D), np.ascontiguousarray(B), float(lam), PIVOT_TOL)
-    if not ok:
-        raise np.linalg.LinAlgError("the pose chain is singular at this damping")
+    :func:`factor_chain` and :func:`_chain_apply`."""
+    Sinv, G, B = factor_chain(D, B, lam)
     X = np.array(R, dtype=float, order="C", copy=True)
     _chain_apply(Sinv, G, B, X)
     return X
@@ -179,12 +187,10 @@ def solve_arrow(D, B, F, gp, Htt, gt, lam):
     the dense Schur complement on the parameters.
     """
     n = F.shape[2]
-    Sinv, G, ok = _chain_factor(np.ascontiguousarray(D), np.ascontiguousarray(B), float(lam), PIVOT_TOL)
-    if not ok:
-        raise np.linalg.LinAlgError("the pose chain is singular at this damping")
+    Sinv, G, B = factor_chain(D, B, lam)
     Xs = np.empty((len(D), 3, n + 1))
     Xs[:, :, 0], Xs[:, :, 1:] = gp, F
-    _chain_apply(Sinv, G, np.ascontiguousarray(B), Xs)              # Hpp^-1 [gp, F]
+    _chain_apply(Sinv, G, B, Xs)                                    # Hpp^-1 [gp, F]
     if n == 0:
         return -Xs[:, :, 0], np.zeros(0)
     FX = _coupling_product(np.ascontiguousarray(F), Xs)          # F^T Hpp^-1 [gp, F]
@@ -340,9 +346,7 @@ class ArrowSolve:
         self.B, self.F, Htt = blocks["B"], blocks["F"], blocks["Htt"]
         self.K, self.n = blocks["D"].shape[0], Htt.shape[0]
         self.c = max(1, CHUNK_DOUBLES // (3 * self.K))          # right-hand sides per chain sweep
-        self.Sinv, self.G, ok = _chain_factor(blocks["D"], self.B, ridge, PIVOT_TOL)
-        if not ok:
-            raise np.linalg.LinAlgError("pose chain not positive definite")
+        self.Sinv, self.G, self.B = factor_chain(blocks["D"], self.B, ridge)
         S = Htt + ridge * np.eye(self.n)
         Fc = blocks["Fc"]
         for j in range(0, self.n, self.c):
