@@ -27,18 +27,31 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
+from casm_graph.fit.continuous import check_effects       # noqa: E402
+from casm_graph.io.log import LogError                    # noqa: E402
 from casm_graph.models.effects import get as get_effect   # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 CATALOG = {e["name"] for e in cg.catalog()}
 UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x", "time_speed": "time",
                "speed_turn": "speed"}   # the covariate each depends on
-CONTINUOUS_EFFECTS = {"actuator_lag", "lens_distortion"}    # what a continuous-command diagnosis can name
 
 
 def position_rms(cal, log) -> float:
     tr = cal.trajectory
     return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
+
+
+def addable(effect: str | None, log) -> bool:
+    """Whether ``calibrate --effect effect`` takes ``log`` (a catalog effect its physics and channels allow)."""
+    if effect not in CATALOG or get_effect(effect)(log).applicable(log) is not None:
+        return False
+    try:
+        if log.controls is not None:
+            check_effects([effect], log)
+    except LogError:
+        return False
+    return True
 
 
 def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3) -> dict:
@@ -51,8 +64,7 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
         warnings.simplefilter("ignore")
         base = cg.calibrate(log, seed=seed)
         d1 = cg.diagnose(log, base)
-        add = d1.to_add() if d1.verdict in CATALOG else (effect if effect in CATALOG and (
-            kind == "table" or effect in CONTINUOUS_EFFECTS) and get_effect(effect)(log).applicable(log) is None else None)
+        add = d1.to_add() if d1.verdict in CATALOG else (effect if addable(effect, log) else None)
         row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "strength": truth.get("strength"),
                "seed": seed, "minutes": minutes, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],

@@ -11,10 +11,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+import casm_graph as cg
 from casm_graph.cli import main
 from casm_graph.fit import continuous as CT
 from casm_graph.graph import robust
-from casm_graph.io.log import write
+from casm_graph.io.log import LogError, write
 from casm_graph.models.command_model import CommandModel, lagged
 from casm_graph.models.model import Model
 from casm_graph.sim.floor import FloorConfig, simulate
@@ -68,7 +69,8 @@ def test_lag_order_survives_model_json_and_a_bad_one_is_refused(tmp_path):
     back = Model.load(tmp_path / "model.json")
     assert back.command.lag_order == 2 and back.command.lag == 0.25
     assert CT.with_effect(back, "actuator_lag", 0.0).command.lag_order == 1          # off: no stages left
-    assert CT.with_effect(back, "lens_distortion", 0.1).effects["lens_distortion"] == {"k": 0.1}   # a lens has no stages
+    with pytest.raises(ValueError, match="not profiled"):             # a lens acts through its hook, not a profile
+        CT.with_effect(back, "lens_distortion", 0.1)
     data["action_model"]["lag_order"] = 3
     (tmp_path / "bad.json").write_text(json.dumps(data))
     with pytest.raises(ValueError, match="lag_order"):
@@ -104,11 +106,12 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     assert lag["effect"] == "actuator_lag" and lag["delta_bic"] < -10
     assert {c["effect"] for c in diag["candidates"]} == {"actuator_lag", "lens_distortion", "battery_fade",
                                                           "camera_latency", "landmark_offset", "range_dependent_noise",
-                                                          "surface_friction"}
+                                                          "surface_friction", "false_detections"}
     assert lag["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
     assert "order" not in lag["parameters"]                  # a one-stage lag keeps the family's first member
     assert lag["heldout_nll_drop"] is None and "continuous" in lag["heldout_skipped"]
-    assert "false_detections" in diag["not_applicable"]
+    false = next(c for c in diag["candidates"] if c["effect"] == "false_detections")
+    assert false["delta_bic"] > 0 and false["heldout_nll_drop"] is not None     # scored on folds; none to find
     pred = diag["predictive"]                                # open-loop error grows with the horizon
     assert pred["horizons_s"][0] == 0 and set(pred["channels"]) == {"reading", "bearing"}
     assert all(v[-1] > v[0] for v in pred["channels"].values())
@@ -120,12 +123,13 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
 
 
-def test_false_detections_refused_on_continuous_logs(lag_floor, tmp_path, capsys):
+def test_a_motion_noise_effect_other_than_regional_is_refused_on_continuous_logs(lag_floor):
+    class Jitter(cg.Effect):
+        name, channel, params, start, scale, noise_only = "jitter", "motion", ("k",), (0.1,), (0.1,), True
+
     d, _ = lag_floor
-    assert main(["calibrate", str(d), "--out", str(tmp_path / "run"), "--effect", "false_detections",
-                 "--quiet"]) == 2
-    assert "continuous-command logs set gross outliers aside by their gate" in capsys.readouterr().err
-    assert not (tmp_path / "run").exists()
+    with pytest.raises(LogError, match="a motion noise effect"):
+        cg.calibrate(cg.load_log(d), effects=[Jitter])
 
 
 def test_diagnose_refuses_a_table_model_on_a_continuous_log(lag_floor, tmp_path, capsys):
@@ -140,17 +144,21 @@ def test_diagnose_refuses_a_table_model_on_a_continuous_log(lag_floor, tmp_path,
 
 
 def test_lens_rows_jacobian_matches_numerical():
+    """The lens acts through its own hook on continuous logs (a fixed camera: the image angle is the bearing); the
+    reading rows' Jacobians over the poses, the polynomial and k match central differences."""
     log, _ = simulate(FloorConfig(minutes=0.5, seed=3, dt=0.1, lens_k=-0.1))
-    m = CT.start_model(log).with_(reading_poly=np.array([0.02, 1.01, 0.0, -0.001]), reading_sigma=10.0)
-    m = CT.with_effect(m, "lens_distortion", -0.15)         # a wide sigma keeps every row inside Huber's core
+    m = CT.start_model(log).with_(reading_poly=np.array([0.02, 1.01, 0.0, -0.001]), reading_sigma=10.0,
+                                  effects={"lens_distortion": {"k": -0.15}})
+    effects = CT.hooked_effects(log, m)
+    assert [e.name for e in effects] == ["lens_distortion"]
     lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
-    problem = CT.Problem(log, lay, m)
-    st = CT.state(log.truth[lay.knots, 1:] + 0.01, m)
-    _, _, re, (Jp, Jc, _), _, _, _ = problem.rows(st)
-    assert np.all(robust.huber(re) == 1.0)
+    st = CT.state(log.truth[lay.knots, 1:] + 0.01, m, effects)
+    problem = CT.Problem(log, lay, m, None, st.poses, effects)
+    _, _, re, (Jp, Jc, Jm), _, _, _ = problem.rows(st)
+    assert np.all(robust.huber(re) == 1.0)         # a wide sigma keeps every row inside Huber's core
 
-    def reading_rows(poses=st.poses, poly=st.poly):
-        return problem.rows(CT.State(poses, st.params, poly))[2]
+    def reading_rows(poses=st.poses, poly=st.poly, theta=st.theta):
+        return problem.rows(CT.State(poses, st.params, poly, theta))[2]
 
     h = 1e-6
     for j in range(3):                  # body-frame tangent step, as GTSAM's Pose2 retract to first order
@@ -167,6 +175,8 @@ def test_lens_rows_jacobian_matches_numerical():
         d[i] = h
         num = (reading_rows(poly=st.poly + d) - reading_rows(poly=st.poly - d)) / (2 * h)
         assert np.allclose(Jc[:, i], num, atol=1e-6)
+    num = (reading_rows(theta=st.theta + h) - reading_rows(theta=st.theta - h)) / (2 * h)
+    assert np.abs(num).max() > 1e-3 and np.allclose(Jm[:, problem.n_params], num, atol=1e-6)
 
 
 @pytest.mark.science

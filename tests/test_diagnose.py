@@ -183,12 +183,12 @@ def test_an_effect_the_log_cannot_support_is_refused(short_bundle, tmp_path):
     d = short_bundle[0]
     shutil.copytree(d, tmp_path / "log")
     obs = (tmp_path / "log" / "observations.csv").read_text().splitlines()
-    head = obs[0].split(",")
-    keep = [i for i, c in enumerate(head) if c != "pan"]
+    b = obs[0].split(",").index("bearing")          # ranges only: no camera, so no lens
     (tmp_path / "log" / "observations.csv").write_text(
-        "\n".join(",".join(row.split(",")[i] for i in keep) for row in obs) + "\n")
+        "\n".join([obs[0]] + [",".join("" if i == b else c for i, c in enumerate(row.split(","))) for row in obs[1:]])
+        + "\n")
     r = cli("calibrate", tmp_path / "log", "--out", tmp_path / "r", "--effect", "lens_distortion")
-    assert r.returncode == 2 and "pan" in r.stderr and not (tmp_path / "r").exists()
+    assert r.returncode == 2 and "needs the bearing" in r.stderr and not (tmp_path / "r").exists()
 
 
 def test_compare_against_measured_tables(short_run, tmp_path):

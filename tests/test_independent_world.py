@@ -204,3 +204,22 @@ def test_a_carpet_anywhere_on_the_floor_is_named_and_mapped(tmp_path):
     assert patch_contrast(cal.model.effects["surface_friction"], log, truth) > 0.5 * truth["strength"]
     assert position_rms(cal, log) < 0.95 * position_rms(base, log), (position_rms(base, log), position_rms(cal, log))
 
+
+
+@pytest.mark.science
+def test_false_detections_on_continuous_commands_named_and_modelled(tmp_path):
+    """Issues 20-21: a share of the sightings follows no landmark (uniform readings and bearings, the world's
+    own draw); the continuous diagnosis scores the mixture on every sighting, the gated ones too, names it with
+    a held-out gain, and once it is added the fitted share is the world's and it is not named again."""
+    truth = generate(tmp_path / "log", kind="continuous", minutes=3, seed=0, effect="false_detections")
+    log = cg.load_log(tmp_path / "log")
+    base = cg.calibrate(log, seed=0)
+    diag = cg.diagnose(log, base)
+    assert diag.verdict == "false_detections", [(c.effect, c.delta_bic) for c in diag.candidates]
+    top = diag.candidates[0]
+    assert top.heldout_nll_drop > 0
+    fixed = cg.calibrate(log, effects=["false_detections"], seed=0)
+    share = truth["stats"]["n_false"] / truth["stats"]["n_observations"]
+    assert fixed.model.effects["false_detections"]["fraction"] == pytest.approx(share, rel=0.2)
+    again = cg.diagnose(log, fixed)
+    assert again.verdict != "false_detections" and "false_detections" not in {c.effect for c in again.candidates}

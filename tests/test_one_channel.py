@@ -80,7 +80,8 @@ def test_diagnosis_of_a_range_only_log_skips_what_needs_a_camera(floors, fits, t
     diag = cg.diagnose(floors["range"], fits["range"])
     assert "lens_distortion" in diag.skipped and "bearing" in diag.skipped["lens_distortion"]
     assert {c.effect for c in diag.candidates} == {"actuator_lag", "battery_fade", "camera_latency", "landmark_offset",
-                                                   "range_dependent_noise", "surface_friction"}   # all ranges allow
+                                                   "range_dependent_noise", "surface_friction",
+                                                   "false_detections"}   # all ranges allow
     assert "bearing" not in diag.residuals and "reading" in diag.residuals
     diag.save(tmp_path / "diag")
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000

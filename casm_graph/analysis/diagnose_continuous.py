@@ -9,8 +9,10 @@ tested. ``time_since_action_change`` is the time since the command last moved by
 so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
 candidates, the profiled ones placed by their profile (:func:`casm_graph.fit.continuous.profile`), the others
 fitted through their hooks, and every one scored by delta BIC against one base, each settled the same way at
-its value; time-blocked held-out folds are not run for continuous logs, so the verdict's second line of
-evidence is the residual structure the effect is built for.
+its value; time-blocked held-out folds are not run for these, so the verdict's second line of evidence is the
+residual structure the effect is built for (a covariate's bins, or the sparse regression's terms). Noise-only
+candidates (false detections, range-dependent noise) are scored at the base's poses, with held-out folds
+(:func:`noise_candidate`).
 """
 from __future__ import annotations
 
@@ -22,20 +24,20 @@ import numpy as np
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, best_of_family,
-                                           channel_report, chosen_candidates, family_members, family_words,
+                                           channel_report, chosen_candidates, family_members, family_words, folds,
                                            lookalike_words, lookalikes, discover, structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel, place
 from casm_graph.fit.solve import least_squares
-from casm_graph.io.log import Log, LogError
+from casm_graph.graph import augmented
+from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span
 from casm_graph.models.model import Model
 
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
-                        "{:.3f} s ({} first-order stage{}).",
-        "lens_distortion": "For a fixed camera the image angle is the bearing: the reading is the polynomial times "
-                           "(1 + {:.4f} bearing^2)."}
+                        "{:.3f} s ({} first-order stage{})."}
 
 
 def time_since_command_change(log: Log, frac: float = DEFAULTS.command_change) -> np.ndarray:
@@ -82,7 +84,7 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model,
     vo = v[np.minimum(log.obs_step, log.steps - 1)]
     ot = log.obs_t - log.t[0]
     scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
-            "turn_rate": vo[:, 2], "distance": dist, "image_angle": bearing, "bearing": bearing,
+            "turn_rate": vo[:, 2], "distance": dist, "image_angle": wrap(bearing - log.camera_pan), "bearing": bearing,
             "landmark": log.obs_landmark.astype(float)}
     r_sigma = np.full(len(ot), problem.reading_sigma)
     r_sigma[problem.r_sel] *= problem.r_scale          # a noise effect's factor on each reading's sigma
@@ -116,6 +118,71 @@ def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, d
     return tried, skipped
 
 
+def mixture_share(reading: np.ndarray, bearing: np.ndarray, reading_sigma, bearing_sigma: float, span: float,
+                  iterations: int = 200, tol: float = 1e-7) -> float:
+    """The false-detection share that maximises the mixture's likelihood of these residuals (sigmas held), by EM."""
+    f = FalseDetections.start[0]
+    for _ in range(iterations):
+        w = mixture_terms(reading, bearing, reading_sigma, bearing_sigma, f, span)["weight"]
+        new = float(np.clip(np.mean(1.0 - w), 1e-4, 0.5)) if len(w) else f
+        if abs(new - f) < tol:
+            return new
+        f = new
+    return f
+
+
+def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, effect, use: tuple, n: int,
+                    options: DiagnoseOptions = DEFAULTS) -> Candidate:
+    """A noise-only ``effect`` scored at the base's poses (T+1, 3), which a noise model does not move: its
+    parameters from the sightings' residuals, its log-likelihood against the base's on the same sightings, and
+    on ``options.folds`` time blocks the parameters learned from the others scoring each block. A false-detection
+    mixture is scored on every sighting, the ones the gate sets aside too (their number and size are its
+    evidence), the base's sigmas held; an effect that scales the readings' sigma on the readings the gate kept
+    (``use``), the reading sigma concentrated out of both. A refit of the poses would let them trade motion
+    residuals for sighting residuals, which confounds the comparison of two noise models (BENCHMARKS.md)."""
+    res = CT.sighting_residuals(log, poses[log.obs_step], model, effects)
+    noisy = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.noise_only]
+    scale = augmented.reading_scale(noisy, augmented.theta_from_model(list(effects), model), res["distance"])
+    rr, rb, d = res["reading"], res["bearing_residual"], res["distance"]
+    if effect.mixture:
+        rows = np.isfinite(log.obs_reading) | np.isfinite(log.obs_bearing)
+        span = reading_span(log.obs_reading)
+        sr, sb = model.reading_sigma * scale, model.bearing_sigma
+
+        def fit(sel):
+            return mixture_share(rr[sel], rb[sel], sr[sel], sb, span)
+
+        def gain(sel, f):
+            m = mixture_terms(rr[sel], rb[sel], sr[sel], sb, f, span)
+            return m["log_density"] - m["gaussian"]
+
+        def described(f):
+            return effect.describe(np.array([f]))
+    else:
+        rows = use[0] & np.isfinite(rr)
+        z = rr / scale                       # in units of the reading sigma, the base's own scales out
+
+        def fit(sel):
+            th = effect.estimate_noise(np.asarray(effect.start, float), z[sel], None, d[sel],
+                                       {"weight": np.ones(int(sel.sum())), "reading_scale": np.ones(int(sel.sum()))})
+            s1 = effect.reading_scale(th, d, {})
+            return th, s1, np.mean(z[sel] ** 2), np.mean((z[sel] / s1[sel]) ** 2)
+
+        def gain(sel, p):
+            _, s1, v0, v1 = p
+            return (-0.5 * (z[sel] / s1[sel]) ** 2 / v1 - 0.5 * np.log(v1) - np.log(s1[sel])
+                    + 0.5 * z[sel] ** 2 / v0 + 0.5 * np.log(v0))
+
+        def described(p):
+            return effect.describe(p[0])
+    p = fit(rows)
+    dll = float(np.sum(gain(rows, p)))
+    heldout = sum(float(np.sum(gain(rows & ~train, fit(rows & train)))) for train in folds(log, options.folds))
+    return Candidate(effect=effect.name, channel=effect.channel,
+                     delta_bic=-2 * dll + effect.free_parameters() * np.log(n), heldout_nll_drop=float(heldout),
+                     explanation=effect.physics, delta_log_likelihood=dll, parameters=described(p), heldout_skipped="")
+
+
 def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_effects=(), candidates=None,
              options: DiagnoseOptions = DEFAULTS, graph: CT.CommandGraphOptions | None = None) -> Diagnosis:
     """Residual analysis of ``model`` on a continuous-command ``log`` from ``poses`` (T+1, 3), and its candidate
@@ -146,8 +213,6 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     rep = channel_report(chs, o)
     struct = structures(rep, o)
     hooked, skipped = hooked_candidates(log, model, extra_effects)
-    skipped.update({n: f"needs the {' and '.join(CT.missing_channels(n, log.channels))} channel(s), which this log "
-                       f"does not measure" for n in CT.EFFECTS if CT.missing_channels(n, log.channels)})
     cands = []
     hooked = [e for e in hooked if wanted(e.name)]
     todo = [n for n in CT.EFFECTS if CT.effect_value(model, n) == 0 and n not in skipped and wanted(n)]
@@ -176,6 +241,11 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
         if progress is not None:
             progress.step(1)
     for e in hooked:
+        if e.noise_only:                  # scored at the base's poses, without a refit
+            cands.append(noise_candidate(log, model, full, own, e, cuse, n, o))
+            if progress is not None:
+                progress.step(1)
+            continue
         ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds,
                                           iterations=search.iterations)
         gain = float(ll - ll0)
@@ -189,14 +259,15 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     cands.sort(key=lambda c: c.delta_bic)
     names = [*(n for n in CT.EFFECTS if n not in skipped and wanted(n)), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
-    v, words = verdict(cands, struct, {n: kinds[n].explains for n in names}, o)
-    v, words, found = discover(v, words, chs, o.proposal)
+    explains = {n: kinds[n].explains for n in names}
+    v, words = verdict(cands, struct, explains, o)
+    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
                        options=o)
     words += family_words(cands, v) + lookalike_words(alike)
     if cands:
-        words.append("Held-out folds are not run for continuous-command logs: a candidate needs BIC and the "
-                     "residual structure it is built for.")
+        words.append("On continuous-command logs held-out folds score only the noise candidates (at the base's "
+                     "poses); the others need BIC and the residual structure they are built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
                      set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
                      predictive=open_loop_error(log, problem, model, full), proposal=found,

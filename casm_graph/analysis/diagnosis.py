@@ -38,7 +38,7 @@ from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.analysis.proposal import ProposalOptions, propose
-from casm_graph.analysis.proposal import covariate as proposal_covariate
+from casm_graph.analysis.proposal import term_covariates
 from casm_graph.analysis.proposal import words as proposal_words
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
@@ -640,7 +640,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
                    progress, client, o)
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     v, words = verdict(cands, struct, explains, o)
-    v, words, found = discover(v, words, chs, o.proposal)
+    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support)
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o)
     return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
@@ -697,14 +697,20 @@ def chosen_candidates(candidates, extra_effects=()) -> set | None:
     return set(candidates)
 
 
-def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions) -> tuple[str, list[str], dict]:
+def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions, cands=(),
+             explains: dict | None = None, support: float = DEFAULTS.bic_support) -> tuple[str, list[str], dict]:
     """The verdict, its words and the sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`,
     searching as ``options`` say). An ``unexplained:<covariate>`` verdict gets the proposal; so does ``none``
     when the regression finds terms that pass its own test, and the verdict becomes ``unexplained:`` the strongest
     term's covariate: the covariate tests bin one covariate at a time and miss a dependence on heading that the
     trajectory's smoothing spreads thin, which a term such as ``v_forward*sin(heading)`` catches. That last test
     leaves out the oscillations in time: the best of forty periods passed |t| = 5 on slow drift of effect-free
-    smoothed trajectories, and a time dependence that matters shows in the covariate tests' time bins."""
+    smoothed trajectories, and a time dependence that matters shows in the covariate tests' time bins.
+
+    Terms that pass are a residual structure too: a candidate of ``cands`` with delta BIC at most ``support``
+    whose held-out score was not measured (continuous commands) and that ``explains`` (by name) a term's axis and
+    covariate is named instead, the lowest delta BIC first (a weak battery fade: no bin of time stood out, the
+    regression's slow trend in time did)."""
     if verdict_name.startswith("unexplained:"):
         return verdict_name, words, propose(chs, options)
     if verdict_name != "none":
@@ -712,7 +718,17 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     found = propose(chs, replace(options, periods=0))
     if not found:
         return verdict_name, words, {}
-    cov = proposal_covariate(found)
+    terms = term_covariates(found)
+    built = [c for c in sorted(cands, key=lambda c: c.delta_bic) if c.delta_bic <= support
+             and np.isnan(c.heldout_nll_drop) and any(t in tuple((explains or {}).get(c.effect, ())) for t in terms)]
+    if built:
+        c = built[0]
+        axis, cov = next(t for t in terms if t in tuple(explains[c.effect]))
+        return c.effect, [
+            f"The residuals point to {c.effect}: adding it lowers BIC by {-c.delta_bic:.1f}, and a sparse regression "
+            f"of the motion residuals finds the {axis} residuals depending on {cov} (|t| >= {options.min_t:g}), the "
+            f"structure it is built for. {c.explanation}"], {}
+    cov = terms[0][1]
     return f"unexplained:{cov}", [
         "No catalog effect is supported and no single covariate's bins show material structure, but a sparse "
         f"regression of the motion residuals finds terms that pass its test (|t| >= {options.min_t:g}): something "

@@ -153,15 +153,22 @@ def propose(chs: dict, options: ProposalOptions | None = None) -> dict:
             "options": asdict(o)}
 
 
+def term_covariates(proposal: dict) -> list[tuple[str, str]]:
+    """(axis, diagnosis covariate) of every term of the proposal, strongest (largest |t|) first: the covariate is
+    heading, x, y, time, speed or turn_rate."""
+    out = []
+    for axis, term in sorted(((a, k) for a, f in proposal["axes"].items() for k in f["t_values"]),
+                             key=lambda ak: -abs(proposal["axes"][ak[0]]["t_values"][ak[1]])):
+        base = term.split(": ", 1)[1]
+        if base.startswith(OWN[axis] + "*"):
+            base = base[len(OWN[axis]) + 1:]
+        out.append((axis, "time" if PERIODIC.match(base) else COVARIATE.get(base, base)))
+    return out
+
+
 def covariate(proposal: dict) -> str:
-    """The diagnosis covariate of the proposal's strongest term (largest |t|): heading, x, y, time, speed or
-    turn_rate."""
-    axis, term = max(((a, k) for a, f in proposal["axes"].items() for k in f["t_values"]),
-                     key=lambda ak: abs(proposal["axes"][ak[0]]["t_values"][ak[1]]))
-    base = term.split(": ", 1)[1]
-    if base.startswith(OWN[axis] + "*"):
-        base = base[len(OWN[axis]) + 1:]
-    return "time" if PERIODIC.match(base) else COVARIATE.get(base, base)
+    """The diagnosis covariate of the proposal's strongest term."""
+    return term_covariates(proposal)[0][1]
 
 
 def words(proposal: dict) -> str:

@@ -34,8 +34,9 @@ from casm_graph.graph import augmented, chain, noise, robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.command_model import CommandModel, for_commands
-from casm_graph.models.effects import Effect, of_model
+from casm_graph.models.effects import of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
+from casm_graph.models.effects.false_detections import mixture_terms, reading_span
 from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
 
 PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the command scale
@@ -48,14 +49,12 @@ INIT_WINDOW = 5.0            # s: the shortest log the start's windows can place
 
 @dataclass(frozen=True)
 class ProfileOptions:
-    """How a profiled effect's parameter (the command model's lag, a fixed camera's lens) is searched on the coarse
+    """How a profiled effect's parameter (the command model's lag) is searched on the coarse
     graph (:func:`profile`): a grid brackets the maximum, Brent's bounded search refines it."""
 
-    grid: dict = field(default_factory=lambda: {
-        "actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8),                      # tau, s
-        "lens_distortion": (-0.4, -0.2, -0.1, -0.05, 0.0, 0.05, 0.1, 0.2, 0.4)})   # k, per rad^2
-    bounds: dict = field(default_factory=lambda: {"actuator_lag": (0.0, 2.0), "lens_distortion": (-1.0, 1.0)})
-    tol: dict = field(default_factory=lambda: {"actuator_lag": 0.01, "lens_distortion": 0.002})
+    grid: dict = field(default_factory=lambda: {"actuator_lag": (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.8)})   # tau, s
+    bounds: dict = field(default_factory=lambda: {"actuator_lag": (0.0, 2.0)})
+    tol: dict = field(default_factory=lambda: {"actuator_lag": 0.01})
     iterations: int = 8                # LM iterations settling each evaluation (half as many after the noise step)
     lag_orders: tuple = (1, 2)         # the lag's family: one first-order stage, or two (a critically damped drive),
     lag_order_support: float = -10.0   # the second tried when the first is this supported (delta BIC), kept when
@@ -87,7 +86,7 @@ class CommandGraphOptions:
     regional_rounds: int = 40          # EM rounds of regional_motion_noise's k's on the fine graph; stop when none moves
     regional_tol: float = 0.02         # by this share (slow where sightings say little about single steps)
     hooked_rounds: int = 3             # fine rounds with hooked effects' parameters free (then up to ``full_settle`` more)
-    profile: ProfileOptions = field(default_factory=ProfileOptions)   # the lag's and the lens's search
+    profile: ProfileOptions = field(default_factory=ProfileOptions)   # the lag's search
 
     def to_json(self) -> dict:
         return {**asdict(self), "profile": self.profile.to_json()}
@@ -197,13 +196,16 @@ class Problem:
         self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
         self.r_scale = np.ones(int(r.sum()))     # per reading: the noise effects' factor on its sigma, fixed for the
-        if self.noise_effects:                   # problem's life (distances from the knot ``poses``), as every noise level
+        self.weight = np.ones(len(log.obs_t))    # problem's life (distances from the knot ``poses``), as every noise
+        if self.noise_effects:                   # level; and each sighting's inlier weight under a false-detection mixture
             if poses is None:
                 raise ValueError(f"{self.noise_effects[0][0].name}: the problem needs the knot poses for its distances")
             self.r_dist = np.hypot(*(self.r_lm - np.asarray(poses)[self.r_knot, :2]).T)
             self.r_scale = augmented.reading_scale(self.noise_effects, augmented.theta_from_model(effects, model),
                                                    self.r_dist)
-        self.lens_k = lens_k(model)
+            self.weight = self.mixture(np.asarray(poses)[lay.obs_knot], model)["weight"]
+        self.mixed = any(e.mixture for e, _ in self.noise_effects)
+        self.r_w, self.b_w = np.sqrt(self.weight[r]), np.sqrt(self.weight[b])
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
         self.p_mean = np.concatenate([nominal.params, self.theta_prior[0]])
@@ -234,9 +236,18 @@ class Problem:
         if self.sensor_effects:
             both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
             self.Bv_obs, self.Bw_obs = both[:, :bv.shape[1]], both[:, bv.shape[1]:]
-            pan = log.obs_pan if log.obs_pan is not None else np.zeros(len(log.obs_t))
-            self.s_ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index,
-                          "pan": np.nan_to_num(pan)}     # no pan logged: a fixed camera (image angle = bearing)
+            self.s_ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan}
+
+    def mixture(self, poses_at_obs: np.ndarray, model: Model) -> dict:
+        """Every sighting's inlier weight and log density (reading and bearing together, gated or not) at
+        ``poses_at_obs`` under ``model``'s noise levels and noise effects: a false-detection mixture's, or
+        Gaussian (weight 1) without one."""
+        res = sighting_residuals(self.log, poses_at_obs, model, self.effects)
+        theta = augmented.theta_from_model(self.effects, model)
+        scale = augmented.reading_scale(self.noise_effects, theta, res["distance"])
+        fraction = float(sum(e.outlier_fraction(theta[s]) for e, s in self.noise_effects))
+        return mixture_terms(res["reading"], res["bearing_residual"], model.reading_sigma * scale,
+                             model.bearing_sigma, fraction, reading_span(self.log.obs_reading))
 
     def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
         """(..., 3) body velocity of basis rows under command parameters ``p`` (no sideways motion)."""
@@ -303,7 +314,9 @@ class Problem:
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
         re, rJ, be, bJ = self.sightings(st)
         if self.noise_effects:
-            re, rJ = re / self.r_scale, [j / self.r_scale[:, None] for j in rJ]
+            w = self.r_w / self.r_scale
+            re, rJ = re * w, [j * w[:, None] for j in rJ]
+            be, bJ = be * self.b_w, [j * self.b_w[:, None] for j in bJ]
         if robust_weights:
             w = robust.huber(re)
             re, rJ = re * w, [j * w[:, None] for j in rJ]
@@ -334,14 +347,8 @@ class Problem:
         is the command map's at the sighting, so its derivative reaches the map's parameters."""
         log = self.log
         velocity = self._velocities(st.params, self.Bv_obs, self.Bw_obs)
-        fn0 = augmented.sensor_function(self.sensor_effects, {**self.s_ctx, "velocity": velocity},
-                                        log.landmark_xy[log.landmark_index])
-        k = self.lens_k
-
-        def fn(theta, pose, poly, idx, velocity=None):
-            pred, bearing, d = fn0(theta, pose, poly, idx, velocity)
-            return (pred * (1.0 + k * wrap(bearing) ** 2) if k else pred), bearing, d
-
+        fn = augmented.sensor_function(self.sensor_effects, {**self.s_ctx, "velocity": velocity},
+                                       log.landmark_xy[log.landmark_index])
         uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
         ls_slices = [s for _, s in self.sensor_effects]
         r_idx, b_idx = np.flatnonzero(self.r_sel), np.flatnonzero(self.b_sel)
@@ -366,12 +373,6 @@ class Problem:
         """Whitened reading and bearing residuals and their Jacobians without sensor effects."""
         P = st.poses
         e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
-        if self.lens_k:          # reading = f(d) (1 + k ia^2), the image angle ia = bearing (fixed camera)
-            ia, Jia = factors.bearing.error(P[self.r_knot], self.r_lm, np.zeros(len(self.r_z)))
-            sc = 1.0 + self.lens_k * ia ** 2
-            f = e + self.r_z[:, None]
-            J = [sc[:, :, None] * J[0] + (2 * self.lens_k * f * ia)[:, :, None] * Jia[0], sc[:, :, None] * J[1]]
-            e = sc * f - self.r_z[:, None]
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
@@ -511,7 +512,9 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
     # sightings beyond the gate are already out of the problem (``gate``); the Huber-weighted sums are taken as they
     # are (the table graph's gate and efficiency correction moved MRCLAM robot 1's fit: see BENCHMARKS, bad data)
-    new = noise.group_scales(e, groups, traces)
+    counts = ({"reading": float(np.sum(problem.weight[problem.r_sel])),
+               "bearing": float(np.sum(problem.weight[problem.b_sel]))} if problem.mixed else None)
+    new = noise.group_scales(e, groups, traces, counts=counts)
     m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
     m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
     m = np.maximum(m, MIN_MOTION_SIGMA)
@@ -541,23 +544,20 @@ def noise_effects_step(problem: Problem, st: State, model: Model) -> Model:
         return model
     raw = problem.sightings(st)[0] * problem.reading_sigma
     theta = augmented.theta_from_model(problem.effects, model)
-    ctx = {"weight": np.ones(len(raw)), "reading_scale": problem.r_scale, "reading_sigma": model.reading_sigma,
-           "bearing_sigma": model.bearing_sigma}
+    measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
+    weight = problem.mixture(st.poses[problem.lay.obs_knot], model)["weight"]
     out = dict(model.effects)
     for e, sl in problem.noise_effects:
-        theta[sl] = e.estimate_noise(theta[sl], raw / (model.reading_sigma * problem.r_scale), None, problem.r_dist, ctx)
+        if e.mixture:                  # a mixture: its share from every sighting's weight, the gated ones too
+            ctx = {"weight": weight[measured]}
+            theta[sl] = e.estimate_noise(theta[sl], None, None, None, ctx)
+        else:
+            ctx = {"weight": weight[problem.r_sel], "reading_scale": problem.r_scale,
+                   "reading_sigma": model.reading_sigma, "bearing_sigma": model.bearing_sigma}
+            theta[sl] = e.estimate_noise(theta[sl], raw / (model.reading_sigma * problem.r_scale), None,
+                                         problem.r_dist, ctx)
         out[e.name] = e.describe(theta[sl])
     return model.with_(effects=out)
-
-
-def lens_k(model: Model) -> float:
-    """The lens_distortion coefficient of a continuous-command model (0 without the effect)."""
-    return float(model.effects.get("lens_distortion", {}).get("k", 0.0))
-
-
-def predicted_reading(model: Model, distance: np.ndarray, image_angle: np.ndarray) -> np.ndarray:
-    """The sensor polynomial at ``distance``, with the lens_distortion factor when the model has it."""
-    return model.reading(distance) * (1.0 + lens_k(model) * image_angle ** 2)
 
 
 def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects=()) -> dict:
@@ -569,16 +569,14 @@ def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects
     bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
     sensor = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.channel == "sensor"]
     if sensor:
-        pan = np.nan_to_num(log.obs_pan) if log.obs_pan is not None else np.zeros(len(log.obs_t))
-        ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": pan,
+        ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan,
                "velocity": sighting_means(log, step_velocities(log, model), velocity_window(model, effects))}
         fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index])
         pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
                         np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
-        pred = pred * (1.0 + lens_k(model) * wrap(b) ** 2)
         return {"distance": d, "bearing": bearing, "reading": log.obs_reading - pred,
                 "bearing_residual": wrap(log.obs_bearing - b)}
-    return {"distance": d, "bearing": bearing, "reading": log.obs_reading - predicted_reading(model, d, bearing),
+    return {"distance": d, "bearing": bearing, "reading": log.obs_reading - model.reading(d),
             "bearing_residual": wrap(log.obs_bearing - bearing)}
 
 
@@ -745,6 +743,12 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
 
 def problem_log_likelihood(problem: "Problem", st, model: Model) -> float:
     """log p(data, knots | model) at ``st``: the cost with its Gaussian normalisers (noise levels fixed)."""
+    if problem.mixed:       # every sighting, gated or not, by its mixture density; motion and priors as below
+        ae, _, _, _, _, _, pe = problem.rows(st, robust_weights=False)
+        measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
+        sightings = problem.mixture(st.poses[problem.lay.obs_knot], model)["log_density"][measured]
+        return float(-0.5 * np.sum(ae ** 2) - 0.5 * np.sum(pe ** 2) - np.sum(np.log(problem.motion_sigma))
+                     - 0.5 * ae.size * np.log(2 * np.pi) + np.sum(sightings))
     sel, n_motion = problem.r_sel, problem.motion_sigma.size
     log_det = (np.sum(np.log(problem.motion_sigma)) + sel.sum() * np.log(model.reading_sigma)
                + np.sum(np.log(problem.r_scale)) + problem.b_sel.sum() * np.log(model.bearing_sigma))
@@ -880,17 +884,9 @@ def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Probl
 
 
 # --------------------------------------------------------------------------- effects for continuous commands
-EFFECTS = ("actuator_lag", "lens_distortion")     # catalog effects profiled and diagnosed on continuous-command logs
+EFFECTS = ("actuator_lag",)                       # catalog effects profiled (part of the command model) and diagnosed
 NOISE_EFFECTS = (RMN.RegionalMotionNoise.name,)   # set by the noise step of every round, added on request only
 
-
-NEEDS = {"lens_distortion": ("reading", "bearing")}   # the sensor channels an effect's physics needs (a lens: a
-                                                     # camera, which always sees the bearing and reads the size)
-
-
-def missing_channels(name: str, channels) -> tuple[str, ...]:
-    """The channels effect ``name`` needs that a log measuring ``channels`` lacks (empty: it applies)."""
-    return tuple(c for c in NEEDS.get(name, ()) if c not in channels)
 
 
 def check_effects(effects, log: Log) -> None:
@@ -904,15 +900,10 @@ def check_effects(effects, log: Log) -> None:
             raise LogError(f"--effect {e}: on continuous commands {base} is profiled in its own forms; "
                            f"give --effect {base}")
         if name in EFFECTS or name in NOISE_EFFECTS:
-            lack = missing_channels(name, log.channels)
-            if lack:
-                raise LogError(f"--effect {name}: needs the {' and '.join(lack)} channel(s), which this log does not "
-                               f"measure (observations.csv has only {', '.join(log.channels)})")
             continue
         inst = augmented.instantiate([e], log)[0]
-        if inst.noise_only and (inst.channel != "sensor" or type(inst).outlier_fraction is not Effect.outlier_fraction):
-            raise LogError(f"--effect {name}: a mixture of false detections or a motion noise effect; continuous-command "
-                           f"logs set gross outliers aside by their gate, and of the motion noise effects take "
+        if inst.noise_only and inst.channel != "sensor":
+            raise LogError(f"--effect {name}: a motion noise effect; of those continuous-command logs take "
                            f"{', '.join(NOISE_EFFECTS)}")
         why = inst.applicable(log)
         if why:
@@ -941,17 +932,15 @@ def with_effect(model: Model, name: str, value: float, order: int | None = None)
     (default: the model's)."""
     if name not in EFFECTS:
         raise ValueError(f"{name!r} is not profiled on continuous-command logs ({', '.join(EFFECTS)} are)")
-    param = {"actuator_lag": "tau", "lens_distortion": "k"}[name]
-    order = int(order or model.command.lag_order) if value and name == "actuator_lag" else 1
-    entry = {param: float(value), **({"order": order} if order != 1 else {})}
+    order = int(order or model.command.lag_order) if value else 1
+    entry = {"tau": float(value), **({"order": order} if order != 1 else {})}
     effects = {**{k: v for k, v in model.effects.items() if k != name}, **({name: entry} if value else {})}
-    if name == "actuator_lag":
-        return model.with_(command=replace(model.command, lag=float(value), lag_order=order), effects=effects)
-    return model.with_(effects=effects)
+    return model.with_(command=replace(model.command, lag=float(value), lag_order=order), effects=effects)
 
 
 def effect_value(model: Model, name: str) -> float:
-    return model.command.lag if name == "actuator_lag" else lens_k(model)
+    """A profiled effect's value in ``model`` (the command model's lag)."""
+    return model.command.lag
 
 
 @dataclass
@@ -1053,7 +1042,7 @@ def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.n
         problem = Problem(log, lay, model, use, st.poses, effects)
         st, _ = least_squares(problem, st, max_iterations=iterations // 2)
         model = with_state(model, st, effects)
-        last, ll = ll, _concentrated_log_likelihood(problem, st)
+        last, ll = ll, _concentrated_log_likelihood(problem, st, model)
         if abs(ll - last) < tol:
             break
     return ll, model
@@ -1075,13 +1064,21 @@ def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
                        bearing_sigma=model.bearing_sigma * g.get("bearing", 1.0))
 
 
-def _concentrated_log_likelihood(problem: Problem, st: State) -> float:
+def _concentrated_log_likelihood(problem: Problem, st: State, model: Model) -> float:
     """log p(data | poses, model) with each noise group's scale at its maximum, up to a constant
-    that does not depend on the poses or the command model: -n/2 log(sigma_ML^2) summed over groups."""
+    that does not depend on the poses or the command model: -n/2 log(sigma_ML^2) summed over groups. Under a
+    false-detection mixture the sightings count by their mixture density instead, every one, gated or not (a
+    concentrated Gaussian over the inlier-weighted rows would reward calling more of them false)."""
     base = {"forward": problem.motion_sigma[:, 0], "lateral": problem.motion_sigma[:, 1],
             "turn": problem.motion_sigma[:, 2]}
     out = 0.0
+    if problem.mixed:
+        measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
+        out += float(np.sum(problem.mixture(st.poses[problem.lay.obs_knot], model)["log_density"][measured]))
+        out += float(np.sum(np.log(problem.r_scale)))       # the mixture's density has the scales in it
     for k, w2 in _group_sums(problem, st).items():
+        if problem.mixed and k in ("reading", "bearing"):
+            continue
         ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
         out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
     return float(out - np.sum(np.log(problem.r_scale)))

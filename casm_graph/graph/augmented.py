@@ -25,7 +25,7 @@ from casm_graph.graph import table as G
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects import Effect
 from casm_graph.models.effects import get as get_effect
-from casm_graph.models.effects.false_detections import inlier_weights, outlier_density
+from casm_graph.models.effects.false_detections import mixture_terms, reading_span
 from casm_graph.models.model import Model
 
 THETA = T(0)
@@ -181,14 +181,13 @@ class EffectProblem:
         self.obs_knot = lay.obs_knot
         self.obs_lm = log.landmark_index
         self.obs_lmxy = log.landmark_xy[self.obs_lm]
-        self.pan = log.obs_pan if log.obs_pan is not None else np.full(n_obs, np.nan)
+        self.pan = log.camera_pan
         self.r_ok = np.isfinite(log.obs_reading) & self.obs_mask
         self.b_ok = np.isfinite(log.obs_bearing) & self.obs_mask
         self.r_idx, self.b_idx = np.flatnonzero(self.r_ok), np.flatnonzero(self.b_ok)
         self.r_knot, self.b_knot = self.obs_knot[self.r_idx], self.obs_knot[self.b_idx]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
-        finite = log.obs_reading[np.isfinite(log.obs_reading)]
-        self.reading_span = float(np.ptp(finite)) if len(finite) else 1.0
+        self.reading_span = reading_span(log.obs_reading)
         self.r_scale = np.ones(n_obs)
         self.weight = np.ones(n_obs)
         th0 = theta if theta is not None else theta_from_model(effects, model)
@@ -407,14 +406,10 @@ class EffectProblem:
         rb = wrap(self.log.obs_bearing - pr["bearing"])
         d = pr["distance"]
         scale = reading_scale(self.sensor_effects, st.theta, d)
-        sr = self.reading_sigma * scale
-        lr = np.where(np.isfinite(rr), -0.5 * (rr / sr) ** 2 - np.log(sr) - 0.5 * np.log(2 * np.pi), 0.0)
-        lb = np.where(np.isfinite(rb), -0.5 * (rb / self.bearing_sigma) ** 2 - np.log(self.bearing_sigma)
-                      - 0.5 * np.log(2 * np.pi), 0.0)
-        weight, lmix = inlier_weights(lr + lb, outlier_density(rr, rb, self.reading_span),
-                                      self.outlier_fraction(st.theta))
-        return {"reading": rr, "bearing": rb, "distance": d, "scale": scale, "log_density": lmix,
-                "weight": weight}
+        m = mixture_terms(rr, rb, self.reading_sigma * scale, self.bearing_sigma, self.outlier_fraction(st.theta),
+                          self.reading_span)
+        return {"reading": rr, "bearing": rb, "distance": d, "scale": scale, "log_density": m["log_density"],
+                "weight": m["weight"]}
 
     def refresh_noise_state(self, st: AState) -> None:
         """Per-observation reading scales and inlier weights at ``st`` (held fixed while least squares runs)."""

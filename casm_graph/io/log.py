@@ -87,6 +87,12 @@ class Log:
         return tuple(name for name, col in (("reading", self.obs_reading), ("bearing", self.obs_bearing))
                      if np.any(~np.isnan(col)))
 
+    @cached_property
+    def camera_pan(self) -> np.ndarray:
+        """(N,) the camera's pan at each sighting: ``obs_pan``, 0 where not logged (a camera fixed to the body, whose
+        image angle is the bearing)."""
+        return _frozen(np.zeros(len(self.obs_t)) if self.obs_pan is None else np.nan_to_num(self.obs_pan))
+
     @property
     def minutes(self) -> float:
         return float(self.pose_times[-1] - self.pose_times[0]) / 60.0

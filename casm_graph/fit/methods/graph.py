@@ -20,7 +20,6 @@ import warnings
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.stats import norm
 
 from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
@@ -33,7 +32,7 @@ from casm_graph.graph import noise
 from casm_graph.graph.chain import arrow_solver
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log
-from casm_graph.models.effects.false_detections import FalseDetections, inlier_weights, outlier_density
+from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span
 from casm_graph.models.model import Model
 
 HEADING_AGREEMENT = 0.9      # ranges only: chained headings agreeing less than this make the start doubtful
@@ -101,10 +100,7 @@ def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: 
     """Every sighting's inlier weight under the false-detection mixture at ``fraction`` (the effect's own
     formula), and the fraction's EM update: how ``--effect false_detections`` acts from the first round."""
     r, b = observation(poses_at_obs, log, model)
-    lin = (np.where(np.isfinite(r), norm.logpdf(r, scale=model.reading_sigma), 0.0)
-           + np.where(np.isfinite(b), norm.logpdf(b, scale=model.bearing_sigma), 0.0))
-    finite = log.obs_reading[np.isfinite(log.obs_reading)]
-    w, _ = inlier_weights(lin, outlier_density(r, b, float(np.ptp(finite)) if len(finite) else 1.0), fraction)
+    w = mixture_terms(r, b, model.reading_sigma, model.bearing_sigma, fraction, reading_span(log.obs_reading))["weight"]
     return w, float(np.clip(np.mean(1.0 - w), 1e-4, 0.5))
 
 

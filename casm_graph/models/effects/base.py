@@ -115,6 +115,11 @@ class Effect:
         """Share of observations that belong to no landmark the model knows."""
         return 0.0
 
+    @property
+    def mixture(self) -> bool:
+        """Whether the effect is an outlier mixture (it has an :meth:`outlier_fraction` of its own)."""
+        return type(self).outlier_fraction is not Effect.outlier_fraction
+
     def estimate_noise(self, theta, reading_z, bearing_z, distance, ctx) -> np.ndarray:
         """New noise parameters from whitened reading and bearing residuals (noise-only effects)."""
         return theta

@@ -22,6 +22,24 @@ def outlier_density(reading: np.ndarray, bearing: np.ndarray, reading_span: floa
             + np.where(np.isfinite(bearing), -np.log(2 * np.pi), 0.0))
 
 
+def reading_span(readings: np.ndarray) -> float:
+    """The span a false reading is drawn from: the measured readings' range (1 without any)."""
+    finite = readings[np.isfinite(readings)]
+    return float(np.ptp(finite)) if len(finite) else 1.0
+
+
+def mixture_terms(reading: np.ndarray, bearing: np.ndarray, reading_sigma, bearing_sigma: float, fraction: float,
+                  span: float) -> dict:
+    """Per sighting, from its reading and bearing residuals (NaN: not measured) and their sigmas: the Gaussian
+    log density of both (``gaussian``), the mixture's (``log_density``) and the inlier ``weight``."""
+    lr = np.where(np.isfinite(reading), -0.5 * (reading / reading_sigma) ** 2 - np.log(reading_sigma)
+                  - 0.5 * np.log(2 * np.pi), 0.0)
+    lb = np.where(np.isfinite(bearing), -0.5 * (bearing / bearing_sigma) ** 2 - np.log(bearing_sigma)
+                  - 0.5 * np.log(2 * np.pi), 0.0)
+    weight, lmix = inlier_weights(lr + lb, outlier_density(reading, bearing, span), fraction)
+    return {"gaussian": lr + lb, "log_density": lmix, "weight": weight}
+
+
 @register
 class FalseDetections(Effect):
     name = "false_detections"

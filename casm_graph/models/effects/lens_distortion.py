@@ -26,8 +26,12 @@ class LensDistortion(Effect):
                "power for a wide lens).")
 
     def applicable(self, log):
-        if log.obs_pan is None or np.all(np.isnan(log.obs_pan)):
-            return "needs the camera pan angle (observations.csv column 'pan') to know the image angle"
+        """A camera reads the size and sees the bearing: both channels. Without ``pan`` the camera is fixed to the
+        body and the image angle is the bearing (``Log.camera_pan``)."""
+        lack = [c for c in ("reading", "bearing") if c not in log.channels]
+        if lack:
+            return (f"needs the {' and '.join(lack)} channel(s) (a camera reads the size and sees the bearing), "
+                    f"which this log does not measure")
         return None
 
     def set_order(self, order: int) -> None:
