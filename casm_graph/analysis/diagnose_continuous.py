@@ -260,7 +260,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     names = [*(n for n in CT.EFFECTS if n not in skipped and wanted(n)), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
     explains = {n: kinds[n].explains for n in names}
-    v, words = verdict(cands, struct, explains, o)
+    v, words = verdict(cands, struct, explains, o, last=tuple(e.name for e in hooked if e.mixture))
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
                        options=o)

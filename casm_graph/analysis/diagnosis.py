@@ -452,7 +452,7 @@ def is_supported(c: Candidate, matches: Callable, options: DiagnoseOptions = DEF
 
 
 def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None,
-            options: DiagnoseOptions = DEFAULTS) -> tuple[str, list[str]]:
+            options: DiagnoseOptions = DEFAULTS, last: tuple = ()) -> tuple[str, list[str]]:
     """The verdict and the sentences that explain it.
 
     A candidate is supported when BIC supports it strongly and a second, independent line agrees:
@@ -461,7 +461,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     as strong as the strongest). Among supported
     candidates whose delta BIC is within ``options.bic_tie`` of the lowest (no evidence either way on
     Kass and Raftery's scale; look-alikes such as a weak actuator lag and camera latency) the
-    held-out score decides.
+    held-out score decides. Effects named in ``last`` are the verdict only when no other candidate is supported
+    (a continuous log's false-detection mixture, scored on the sightings the gate sets aside, whose delta BIC is
+    not on the others' scale: a strong lens sends sightings beyond the gate too).
     """
     words = []
     explains = explains or {}
@@ -469,9 +471,10 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     strong = strong_structures(structure, o)
     matches = built_for(strong, explains)
     supported = [c for c in cands if is_supported(c, matches, o)]
+    first = [c for c in supported if c.effect not in last] or supported
     if supported:
-        lead = min(c.delta_bic for c in supported)
-        tied = [c for c in supported if c.delta_bic - lead < o.bic_tie]
+        lead = min(c.delta_bic for c in first)
+        tied = [c for c in first if c.delta_bic - lead < o.bic_tie]
         best = max(tied, key=lambda c: -np.inf if np.isnan(c.heldout_nll_drop) else c.heldout_nll_drop)
         if best.heldout_nll_drop > o.heldout_support:
             second = f"improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats"
@@ -487,10 +490,15 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                          + ", ".join(f"{c.delta_bic:.1f}" for c in tied) + f": closer than {o.bic_tie:g}); the "
                          "held-out log-likelihood prefers " + best.effect + " (" + ", ".join(
                              f"{c.heldout_nll_drop:.1f}" for c in tied) + " nats).")
-        rest = [c for c in supported if c is not best]
+        rest = [c for c in first if c is not best]
         if rest:
             words.append("Also supported, less strongly: " + ", ".join(
                 f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in rest) + ".")
+        later = [c for c in supported if c not in first]
+        if later:
+            words.append("Also supported, after the effects with a structure: " + ", ".join(
+                f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in later) + "; the sightings it calls false may be "
+                "ones the verdict's effect explains: diagnose again once that is added.")
         unscored = [c for c in cands if c.heldout_skipped == DECIDED and c.delta_bic <= o.bic_support
                     and c not in supported]
         if unscored:
