@@ -102,6 +102,37 @@ def cand(name, dbic, held):
     return D.Candidate(name, "motion", dbic, held, "because", -dbic / 2)
 
 
+def test_a_mixture_named_last_comes_after_a_supported_effect_with_structure():
+    lens = {"channel": "reading", "name": "image_angle", "strength": 0.04, "p": 1e-30, "kind": "mean"}
+    explains = {"lens_distortion": (("reading", "image_angle"),), "false_detections": ()}
+    cands = [cand("false_detections", -9000, 400), cand("lens_distortion", -600, float("nan"))]
+    assert D.verdict(cands, [lens], explains)[0] == "false_detections"           # by delta BIC alone
+    v, words = D.verdict(cands, [lens], explains, last=("false_detections",))
+    assert v == "lens_distortion" and "after the effects with a structure: false_detections" in " ".join(words)
+    assert D.verdict(cands, [], explains, last=("false_detections",))[0] == "false_detections"   # alone supported
+
+
+def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_for():
+    """A forward speed falling slowly with time (a weak battery fade) and no bin test: the sparse regression's
+    term in time names the candidate built for (forward, time) when no folds scored it."""
+    rng = np.random.default_rng(0)
+    n, dt = 6000, 0.1
+    t = np.arange(n) * dt
+    v = np.column_stack([0.2 + 0.05 * rng.random(n), np.zeros(n), 0.3 * rng.standard_normal(n)])
+    pose = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-np.pi, np.pi, n)])
+    cov = {"time": t, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2]}
+    span = np.full(n, dt)
+    raw = {"forward": -0.02 * v[:, 0] * t / 60.0 * dt, "lateral": np.zeros(n), "turn": np.zeros(n)}
+    chs = {a: Channel(a, (raw[a] + 0.002 * rng.standard_normal(n)) / 0.002, raw[a] + 0.002 * rng.standard_normal(n),
+                      t, cov, command=v[:, k], span=span) for k, a in enumerate(("forward", "lateral", "turn"))}
+    explains = {"battery_fade": (("forward", "time"),)}
+    v_, words, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, float("nan"))],
+                                  explains)
+    assert v_ == "battery_fade" and "forward residuals depending on time" in words[0] and found == {}
+    v_, _, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, -3.0)], explains)
+    assert v_ == "unexplained:time" and found            # scored on folds: the folds decided, not the terms
+
+
 def test_verdict_rule():
     strong = {"channel": "forward", "name": "heading", "strength": 0.05, "p": 1e-12, "kind": "mean"}
     assert D.verdict([cand("actuator_lag", -50, 10), cand("battery_fade", -20, 5)], [strong])[0] == "actuator_lag"

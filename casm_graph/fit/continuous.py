@@ -203,8 +203,9 @@ class Problem:
             self.r_dist = np.hypot(*(self.r_lm - np.asarray(poses)[self.r_knot, :2]).T)
             self.r_scale = augmented.reading_scale(self.noise_effects, augmented.theta_from_model(effects, model),
                                                    self.r_dist)
-            self.weight = self.mixture(np.asarray(poses)[lay.obs_knot], model)["weight"]
         self.mixed = any(e.mixture for e, _ in self.noise_effects)
+        if self.mixed:
+            self.weight = self.mixture(np.asarray(poses)[lay.obs_knot], model)["weight"]
         self.r_w, self.b_w = np.sqrt(self.weight[r]), np.sqrt(self.weight[b])
         self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
@@ -545,7 +546,8 @@ def noise_effects_step(problem: Problem, st: State, model: Model) -> Model:
     raw = problem.sightings(st)[0] * problem.reading_sigma
     theta = augmented.theta_from_model(problem.effects, model)
     measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
-    weight = problem.mixture(st.poses[problem.lay.obs_knot], model)["weight"]
+    weight = (problem.mixture(st.poses[problem.lay.obs_knot], model)["weight"] if problem.mixed
+              else np.ones(len(measured)))
     out = dict(model.effects)
     for e, sl in problem.noise_effects:
         if e.mixture:                  # a mixture: its share from every sighting's weight, the gated ones too
@@ -886,7 +888,6 @@ def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Probl
 # --------------------------------------------------------------------------- effects for continuous commands
 EFFECTS = ("actuator_lag",)                       # catalog effects profiled (part of the command model) and diagnosed
 NOISE_EFFECTS = (RMN.RegionalMotionNoise.name,)   # set by the noise step of every round, added on request only
-
 
 
 def check_effects(effects, log: Log) -> None:
