@@ -212,3 +212,8 @@ def test_plaza_part_from_the_log_alone():
     assert pos < 1.0, pos
     slope = (cal.model.reading(40.0) - cal.model.reading(20.0)) / 20.0
     assert abs(slope / TRUE_PLAZA_SLOPE - 1.0) < 0.02, slope
+
+
+def test_range_dependent_noise_needs_the_readings(floors):
+    with pytest.raises(cg.LogError, match="range_dependent_noise cannot be fitted .*needs the reading channel"):
+        cg.calibrate(floors["bearing"], effects=["range_dependent_noise"])

@@ -21,6 +21,9 @@ class RangeDependentNoise(Effect):
     physics = ("Far beacons cover few pixels, so edge quantisation and blur are a larger share of their "
                "height: the reading's noise grows linearly with distance, sigma (1 + growth d).")
 
+    def applicable(self, log):
+        return None if "reading" in log.channels else "needs the reading channel, which this log does not measure"
+
     def reading_scale(self, theta, distance, ctx):
         return 1.0 + max(theta[0], 0.0) * distance
 
