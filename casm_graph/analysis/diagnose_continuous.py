@@ -33,7 +33,7 @@ from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.effects import REGISTRY
-from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span
+from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
 
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
@@ -124,7 +124,7 @@ def mixture_share(reading: np.ndarray, bearing: np.ndarray, reading_sigma, beari
     f = FalseDetections.start[0]
     for _ in range(iterations):
         w = mixture_terms(reading, bearing, reading_sigma, bearing_sigma, f, span)["weight"]
-        new = float(np.clip(np.mean(1.0 - w), 1e-4, 0.5)) if len(w) else f
+        new = share(w) if len(w) else f
         if abs(new - f) < tol:
             return new
         f = new

@@ -204,6 +204,7 @@ class Problem:
             self.r_scale = augmented.reading_scale(self.noise_effects, augmented.theta_from_model(effects, model),
                                                    self.r_dist)
         self.mixed = any(e.mixture for e, _ in self.noise_effects)
+        self.measured = np.isfinite(log.obs_reading) | np.isfinite(log.obs_bearing)   # sightings with any channel
         if self.mixed:
             self.weight = self.mixture(np.asarray(poses)[lay.obs_knot], model)["weight"]
         self.r_w, self.b_w = np.sqrt(self.weight[r]), np.sqrt(self.weight[b])
@@ -249,6 +250,10 @@ class Problem:
         fraction = float(sum(e.outlier_fraction(theta[s]) for e, s in self.noise_effects))
         return mixture_terms(res["reading"], res["bearing_residual"], model.reading_sigma * scale,
                              model.bearing_sigma, fraction, reading_span(self.log.obs_reading))
+
+    def mixture_log_likelihood(self, poses_at_obs: np.ndarray, model: Model) -> float:
+        """Sum of :meth:`mixture`'s log densities over every measured sighting, gated or not."""
+        return float(np.sum(self.mixture(poses_at_obs, model)["log_density"][self.measured]))
 
     def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
         """(..., 3) body velocity of basis rows under command parameters ``p`` (no sideways motion)."""
@@ -545,13 +550,12 @@ def noise_effects_step(problem: Problem, st: State, model: Model) -> Model:
         return model
     raw = problem.sightings(st)[0] * problem.reading_sigma
     theta = augmented.theta_from_model(problem.effects, model)
-    measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
     weight = (problem.mixture(st.poses[problem.lay.obs_knot], model)["weight"] if problem.mixed
-              else np.ones(len(measured)))
+              else np.ones(len(problem.measured)))
     out = dict(model.effects)
     for e, sl in problem.noise_effects:
         if e.mixture:                  # a mixture: its share from every sighting's weight, the gated ones too
-            ctx = {"weight": weight[measured]}
+            ctx = {"weight": weight[problem.measured]}
             theta[sl] = e.estimate_noise(theta[sl], None, None, None, ctx)
         else:
             ctx = {"weight": weight[problem.r_sel], "reading_scale": problem.r_scale,
@@ -747,10 +751,9 @@ def problem_log_likelihood(problem: "Problem", st, model: Model) -> float:
     """log p(data, knots | model) at ``st``: the cost with its Gaussian normalisers (noise levels fixed)."""
     if problem.mixed:       # every sighting, gated or not, by its mixture density; motion and priors as below
         ae, _, _, _, _, _, pe = problem.rows(st, robust_weights=False)
-        measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
-        sightings = problem.mixture(st.poses[problem.lay.obs_knot], model)["log_density"][measured]
         return float(-0.5 * np.sum(ae ** 2) - 0.5 * np.sum(pe ** 2) - np.sum(np.log(problem.motion_sigma))
-                     - 0.5 * ae.size * np.log(2 * np.pi) + np.sum(sightings))
+                     - 0.5 * ae.size * np.log(2 * np.pi)
+                     + problem.mixture_log_likelihood(st.poses[problem.lay.obs_knot], model))
     sel, n_motion = problem.r_sel, problem.motion_sigma.size
     log_det = (np.sum(np.log(problem.motion_sigma)) + sel.sum() * np.log(model.reading_sigma)
                + np.sum(np.log(problem.r_scale)) + problem.b_sel.sum() * np.log(model.bearing_sigma))
@@ -1074,8 +1077,7 @@ def _concentrated_log_likelihood(problem: Problem, st: State, model: Model) -> f
             "turn": problem.motion_sigma[:, 2]}
     out = 0.0
     if problem.mixed:
-        measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
-        out += float(np.sum(problem.mixture(st.poses[problem.lay.obs_knot], model)["log_density"][measured]))
+        out += problem.mixture_log_likelihood(st.poses[problem.lay.obs_knot], model)
         out += float(np.sum(np.log(problem.r_scale)))       # the mixture's density has the scales in it
     for k, w2 in _group_sums(problem, st).items():
         if problem.mixed and k in ("reading", "bearing"):

@@ -32,7 +32,7 @@ from casm_graph.graph import noise
 from casm_graph.graph.chain import arrow_solver
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log
-from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span
+from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
 
 HEADING_AGREEMENT = 0.9      # ranges only: chained headings agreeing less than this make the start doubtful
@@ -101,7 +101,7 @@ def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: 
     formula), and the fraction's EM update: how ``--effect false_detections`` acts from the first round."""
     r, b = observation(poses_at_obs, log, model)
     w = mixture_terms(r, b, model.reading_sigma, model.bearing_sigma, fraction, reading_span(log.obs_reading))["weight"]
-    return w, float(np.clip(np.mean(1.0 - w), 1e-4, 0.5))
+    return w, share(w)
 
 
 def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress, weight=None):

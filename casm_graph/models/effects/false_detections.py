@@ -28,6 +28,11 @@ def reading_span(readings: np.ndarray) -> float:
     return float(np.ptp(finite)) if len(finite) else 1.0
 
 
+def share(weight: np.ndarray) -> float:
+    """The false-detection share the inlier weights imply (the mixture's EM update), kept within [1e-4, 0.5]."""
+    return float(np.clip(np.mean(1.0 - weight), 1e-4, 0.5))
+
+
 def mixture_terms(reading: np.ndarray, bearing: np.ndarray, reading_sigma, bearing_sigma: float, fraction: float,
                   span: float) -> dict:
     """Per sighting, from its reading and bearing residuals (NaN: not measured) and their sigmas: the Gaussian
@@ -58,7 +63,7 @@ class FalseDetections(Effect):
         return float(np.clip(theta[0], 0.0, 0.5))
 
     def estimate_noise(self, theta, reading_z, bearing_z, distance, ctx):
-        return np.array([float(np.clip(np.mean(1.0 - ctx["weight"]), 1e-4, 0.5))])
+        return np.array([share(ctx["weight"])])
 
     def corrupt(self, theta, obs, rng):
         n = len(obs["landmark"])
