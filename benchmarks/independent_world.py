@@ -54,25 +54,26 @@ def addable(effect: str | None, log) -> bool:
     return True
 
 
-def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3) -> dict:
-    """One world (sightings no closer than ``min_range``): calibrate, diagnose, add the named (or hidden)
-    effect, diagnose again."""
+def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3,
+          sensor_basis: str = "distance") -> dict:
+    """One world (sightings no closer than ``min_range``): calibrate (the sensor curve in ``sensor_basis``),
+    diagnose, add the named (or hidden) effect, diagnose again."""
     t0 = time.perf_counter()
     truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect, min_range=min_range)
     log = cg.load_log(workdir / "log")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        base = cg.calibrate(log, seed=seed)
+        base = cg.calibrate(log, seed=seed, sensor_basis=sensor_basis)
         d1 = cg.diagnose(log, base)
         add = d1.to_add() if d1.verdict in CATALOG else (effect if addable(effect, log) else None)
-        row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "strength": truth.get("strength"),
+        row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "sensor_basis": sensor_basis, "strength": truth.get("strength"),
                "seed": seed, "minutes": minutes, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],
                "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
                                "order": c.order} for c in d1.candidates[:4]],
                "error_before": position_rms(base, log), "added": add}
         if add is not None:
-            fixed = cg.calibrate(log, effects=[add], seed=seed)
+            fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis)
             d2 = cg.diagnose(log, fixed, before=d1)
             row.update(verdict_after=d2.verdict, error_after=position_rms(fixed, log),
                        predictive=d2.before_after.get("predictive") if d2.before_after else None)
@@ -117,6 +118,7 @@ def main():
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--out", default="independent_world.jsonl")
     ap.add_argument("--min-range", type=float, default=0.3, help="closest sighting in the world, m")
+    ap.add_argument("--sensor-basis", default="distance", choices=("distance", "inverse_distance"))
     ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     if args.table:
@@ -129,7 +131,7 @@ def main():
                 for seed in args.seeds:
                     with tempfile.TemporaryDirectory() as w:
                         row = trial(kind, None if effect == "none" else effect, seed, args.minutes, Path(w),
-                                    args.min_range)
+                                    args.min_range, args.sensor_basis)
                     rows.append(row)
                     f.write(json.dumps(row, default=float) + "\n")
                     f.flush()

@@ -117,6 +117,7 @@ def _calibrate(args) -> int:
             warnings.simplefilter("always", RuntimeWarning)
             log, fit = calibrate_run.run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
                                          max_sensor_degree=args.max_sensor_degree,
+                                         sensor_basis=args.sensor_basis,
                                          effects=_requested_effects(args), seed=args.seed, progress=bar, regions=args.regions,
                                          force=args.force, command=command_line(args))
     finally:
@@ -252,6 +253,9 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--max-sensor-degree", type=int, default=6,
                    help="the graph method raises the degree up to this when the readings demand a bendier curve "
                         "(set it to --sensor-degree to keep that degree)")
+    c.add_argument("--sensor-basis", default="distance", choices=("distance", "inverse_distance"),
+                   help="the sensor curve's variable: a polynomial in the distance (the paper's) or in 1/distance, "
+                        "for a reading that is an apparent size (pixels), which falls as 1/d")
     c.add_argument("--regions", default=None, metavar="NX,NY[,X0,Y0,X1,Y1]",
                    help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")

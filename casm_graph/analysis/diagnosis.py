@@ -510,6 +510,10 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
         words.append(f"No catalog effect explains the data better, but the {s['channel']} residuals' "
                      f"{s['kind']} follows {s['name']} (it explains {100 * s['strength']:.1f} % of their variance, "
                      f"p = {s['p']:.1e}). Something the model and the catalog lack depends on {s['name']}.")
+        if s["channel"] == "reading" and s["name"] == "distance":
+            words.append("The sensor curve itself may be what misses: a reading that is an apparent size (pixels) "
+                         "falls as 1/distance, which a polynomial in the distance follows badly near the landmarks; "
+                         "calibrate again with --sensor-basis inverse_distance (or a higher --max-sensor-degree).")
         return f"unexplained:{s['name']}", words
     words.append("The model explains the data: no candidate effect is supported (every delta BIC above "
                  f"{o.bic_support:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")

@@ -40,6 +40,8 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.stats import norm
 
+from factors.reading import BASES, features
+
 Z = 3.0                 # sigmas a change must exceed
 MIN_REL = 0.03          # and this share of the earlier value
 ALPHA = 0.05            # chance of any false family flag in the whole fleet
@@ -171,7 +173,10 @@ def _curve(model: dict, d: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     poly = np.array([_num(c) for c in sm.get("reading_poly") or []])
     if len(poly) == 0 or not np.isfinite(poly).all():
         return None
-    V = np.vander(d, len(poly), increasing=True)
+    basis = sm.get("reading_basis", "distance")
+    if basis not in BASES:
+        return None
+    V = features(d, len(poly), basis)[0]
     cov = sm.get("reading_poly_cov")
     if cov is not None:
         C = np.array([[_num(x) for x in row] for row in cov])

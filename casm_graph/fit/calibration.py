@@ -47,11 +47,13 @@ class CalibrateOptions:
     graph: GraphOptions = field(default_factory=GraphOptions)   # the action-table graph's search (graph, graph-em)
     command_graph: CommandGraphOptions = field(default_factory=CommandGraphOptions)   # the continuous-command graph's search
     max_sensor_degree: int = 6         # the graph method raises the sensor degree up to this when the data demand
+    sensor_basis: str = "distance"     # the curve's variable: "distance" (the paper's) or "inverse_distance" (a size)
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,
                 "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions,
-                "max_sensor_degree": self.max_sensor_degree, "graph": self.graph.to_json(),
+                "max_sensor_degree": self.max_sensor_degree, "sensor_basis": self.sensor_basis,
+                "graph": self.graph.to_json(),
                 "command_graph": self.command_graph.to_json()}
 
 

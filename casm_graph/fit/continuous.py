@@ -208,7 +208,7 @@ class Problem:
         if self.mixed:
             self.weight = self.mixture(np.asarray(poses)[lay.obs_knot], model)["weight"]
         self.r_w, self.b_w = np.sqrt(self.weight[r]), np.sqrt(self.weight[b])
-        self.n_params, self.n_poly = len(cm.params), len(model.reading_poly)
+        self.n_params, self.n_poly, self.basis = len(cm.params), len(model.reading_poly), model.reading_basis
         nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
         self.p_mean = np.concatenate([nominal.params, self.theta_prior[0]])
         self.p_sigma = np.concatenate([PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef))),
@@ -354,7 +354,7 @@ class Problem:
         log = self.log
         velocity = self._velocities(st.params, self.Bv_obs, self.Bw_obs)
         fn = augmented.sensor_function(self.sensor_effects, {**self.s_ctx, "velocity": velocity},
-                                       log.landmark_xy[log.landmark_index])
+                                       log.landmark_xy[log.landmark_index], self.basis)
         uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
         ls_slices = [s for _, s in self.sensor_effects]
         r_idx, b_idx = np.flatnonzero(self.r_sel), np.flatnonzero(self.b_sel)
@@ -378,7 +378,7 @@ class Problem:
     def _sightings(self, st: State):
         """Whitened reading and bearing residuals and their Jacobians without sensor effects."""
         P = st.poses
-        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
+        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z, self.basis)
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
         e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
         be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
@@ -577,7 +577,7 @@ def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects
     if sensor:
         ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan,
                "velocity": sighting_means(log, step_velocities(log, model), velocity_window(model, effects))}
-        fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index])
+        fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index], model.reading_basis)
         pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
                         np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
         return {"distance": d, "bearing": bearing, "reading": log.obs_reading - pred,
@@ -667,12 +667,13 @@ def initialise(log: Log, model: Model, options: W.WindowOptions | None = None) -
     speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
     ws = W.window_start(log, nominal.velocities(log.controls, log.dt), len(model.reading_poly), max(speed, 0.05),
                         options)
-    return W.with_model(ws, model.with_(command=nominal))
+    return W.with_model(ws, model.with_(command=nominal), log)
 
 
 # --------------------------------------------------------------------------- the fit
 
-def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1) -> Model:
+def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1,
+                basis: str = "distance") -> Model:
     """The paper's start for continuous commands: zero velocity for every command, a flat sensor line.
 
     Either channel may be missing from the whole log (range-only or bearing-only sensors); the
@@ -692,7 +693,7 @@ def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: i
     return Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=poly,
                  reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
                  motion_noise=np.array(PAPER_MOTION_NOISE), command=for_commands(log.controls, v_degree, w_degree),
-                 channels=log.channels)
+                 channels=log.channels, reading_basis=basis)
 
 
 def identity_model(log: Log, like: Model) -> Model:

@@ -29,6 +29,7 @@ from casm_graph.fit.windows import inverse_curve, window_start
 from casm_graph.graph import robust
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.model import Model
+from factors.reading import curve, features
 
 @dataclass
 class Start:
@@ -247,8 +248,9 @@ def _range_start(log: Log, model: Model, seg_start, seg_of_knot, seg_act, t_knot
     obs_cut = np.searchsorted(seg_of_obs, np.arange(n_seg + 1))
     attempted = (np.array([log.attempted.get(int(a), np.full(3, np.nan)) for a in model.action_ids])
                  if log.attempted else None)
-    dist = inverse_curve(poly, 0.05, max(d_max, 1.0))(log.obs_reading)
-    slope = np.abs(np.polynomial.polynomial.polyval(dist, np.polynomial.polynomial.polyder(poly)))
+    dist = inverse_curve(poly, 0.05, max(d_max, 1.0), model.reading_basis)(log.obs_reading)
+    slope = np.abs(np.polynomial.polynomial.polyval(dist, np.polynomial.polynomial.polyder(poly))
+                   if model.reading_basis == "distance" else features(dist, len(poly), model.reading_basis)[1] @ poly)
     weight = (slope / max(1.4826 * float(np.median(np.abs(res))), 1e-9)) ** 2   # inverse variance as a distance
     t_ref = np.full(n_seg, np.nan)
     nw = len(TURN_RATES)
@@ -305,6 +307,10 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
         loc = locate(log, obs_knot, len(knots), float(np.median(np.diff(t_knot))), c_knot, T // c_stride + 1,
                      len(model.reading_poly) - 1, cell)
         mean, poly, res, (p, k), ev = loc.mean, loc.poly, loc.residual, loc.hypothesis, loc.log_evidence
+        if model.reading_basis != "distance":        # the curve the user asked for, at the located distances
+            d = np.hypot(*(mean[obs_knot] - lm).T)[~np.isnan(log.obs_reading)]
+            poly = robust.polyfit(d, log.obs_reading[~np.isnan(log.obs_reading)], len(poly) - 1, model.reading_basis)
+            res = log.obs_reading[~np.isnan(log.obs_reading)] - curve(d, poly, model.reading_basis)
 
     # 2. headings per constant-action segment from bearings
     act = log.action

@@ -20,9 +20,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from casm_graph.fit.locate import grid_cell, locate
+from casm_graph.graph import robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.model import Model
+from factors.reading import curve
 
 MIN_BOTH = 10                # sightings with reading and bearing below which a log is placed by one channel
 
@@ -68,12 +70,25 @@ class WindowStart:
     model: Model | None = None   # the start model, when the caller attached one (``with_model``)
 
 
-def with_model(ws: WindowStart, model: Model) -> WindowStart:
-    """``ws`` and its alternatives carrying ``model`` with their own sensor curve and reading sigma."""
+def curve_at(log: Log, poses_at_obs: np.ndarray, degree: int, basis: str) -> tuple[np.ndarray, float]:
+    """The sensor curve in ``basis`` (robust fit) through the readings at their distances from
+    ``poses_at_obs``, and its residuals' robust scale: a start's curve in the basis the user asked."""
+    ok = np.isfinite(log.obs_reading)
+    d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - poses_at_obs[ok, :2]).T)
+    poly = robust.polyfit(d, log.obs_reading[ok], degree, basis)
+    return poly, robust.mad_scale(log.obs_reading[ok] - curve(d, poly, basis))
+
+
+def with_model(ws: WindowStart, model: Model, log: Log | None = None) -> WindowStart:
+    """``ws`` and its alternatives carrying ``model`` with their own sensor curve and reading sigma (the
+    curve refitted at their poses when ``model``'s basis is not the distance, for which ``log`` is needed)."""
     def one(w):
-        m = model.with_(reading_poly=w.poly)
-        if np.isfinite(w.reading_sigma):
-            m = m.with_(reading_sigma=w.reading_sigma)
+        poly, sigma = w.poly, w.reading_sigma
+        if model.reading_basis != "distance" and model.has("reading"):
+            poly, sigma = curve_at(log, w.poses[log.obs_step], len(w.poly) - 1, model.reading_basis)
+        m = model.with_(reading_poly=poly)
+        if np.isfinite(sigma):
+            m = m.with_(reading_sigma=sigma)
         return replace(w, model=m, alternatives=[])
     return replace(one(ws), alternatives=[one(a) for a in ws.alternatives])
 
@@ -85,10 +100,10 @@ def dead_reckon_steps(velocity: np.ndarray, dt: np.ndarray, start: np.ndarray) -
     return poses
 
 
-def inverse_curve(poly: np.ndarray, lo: float, hi: float):
-    """Distance as a function of the reading, by interpolation on the monotone part of ``poly``."""
+def inverse_curve(poly: np.ndarray, lo: float, hi: float, basis: str = "distance"):
+    """Distance as a function of the reading, by interpolation on the monotone part of the curve ``poly``."""
     d = np.linspace(lo, hi, 400)
-    r = np.polynomial.polynomial.polyval(d, poly)
+    r = curve(d, poly, basis)
     keep = np.flatnonzero(np.diff(r) > 0) if r[-1] > r[0] else np.flatnonzero(np.diff(r) < 0)
     d, r = d[keep], r[keep]
     order = np.argsort(r)

@@ -124,9 +124,10 @@ def motion_function(motion_effects, ctx: dict, theta: np.ndarray):
     return bound
 
 
-def sensor_function(sensor_effects, ctx: dict, landmark_xy: np.ndarray):
+def sensor_function(sensor_effects, ctx: dict, landmark_xy: np.ndarray, basis: str = "distance"):
     """Predicted reading, bearing and distance of observations ``idx`` under ``sensor_effects`` ((effect,
-    slice) pairs), as a function of the parameters, the poses and the polynomial; ``landmark_xy`` per observation."""
+    slice) pairs), as a function of the parameters, the poses and the sensor curve's coefficients (in
+    ``basis``, :mod:`factors.reading`); ``landmark_xy`` per observation."""
 
     def fn(theta, pose, poly, idx, velocity=None):
         c = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in ctx.items()}
@@ -140,7 +141,7 @@ def sensor_function(sensor_effects, ctx: dict, landmark_xy: np.ndarray):
         d = np.hypot(rel[:, 0], rel[:, 1])
         bearing = np.arctan2(rel[:, 1], rel[:, 0]) - p[:, 2]
         c.update(distance=d, bearing=wrap(bearing), image_angle=wrap(bearing - c["pan"]))
-        pred = np.polynomial.polynomial.polyval(d, poly)
+        pred = factors.reading.curve(d, poly, basis)
         for e, s in sensor_effects:
             pred = e.reading(theta[s], pred, c)
         return pred, bearing, d
@@ -220,7 +221,7 @@ class EffectProblem:
                 "velocity": v[step]}
 
     def _sensor_fn(self, ctx):
-        return sensor_function(self.sensor_effects, ctx, self.obs_lmxy)
+        return sensor_function(self.sensor_effects, ctx, self.obs_lmxy, self.model.reading_basis)
 
     def predictions(self, st: AState) -> dict:
         """Predicted reading, bearing and distance of every observation (masked or not)."""

@@ -12,6 +12,8 @@ import numpy as np
 from scipy import stats
 from scipy.optimize import least_squares
 
+from factors.reading import curve, features, fit_curve
+
 HUBER = 2.0          # sigmas: quadratic inside, linear beyond
 GATE = 5.0           # sigmas: beyond this a sighting is set aside from noise estimates
 # E[min(z^2, HUBER |z|)] for a standard normal z, which works out to P(|z| <= HUBER): the Huber-weighted sum
@@ -44,8 +46,9 @@ def mad_scale(x: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) or 1.0
 
 
-def polyfit(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
-    """Polynomial coefficients (lowest power first) of a Huber regression of ``y`` on ``x``.
+def polyfit(x: np.ndarray, y: np.ndarray, degree: int, basis: str = "distance") -> np.ndarray:
+    """Sensor-curve coefficients (lowest power first, powers of ``x`` or of 1/x as ``basis`` says,
+    :mod:`factors.reading`) of a Huber regression of ``y`` on ``x``.
 
     Starts from the least-squares fit of the points within the gate of a median-centred scale, so a
     reading thousands of times off has no say in the start either."""
@@ -53,9 +56,9 @@ def polyfit(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
     keep = np.abs(y - np.median(y)) <= GATE * 3 * mad_scale(y) + 1e-12
     if keep.sum() <= degree:
         keep = np.ones(len(y), bool)
-    c0 = np.polynomial.polynomial.polyfit(x[keep], y[keep], degree)
-    scale = mad_scale(y[keep] - np.polynomial.polynomial.polyval(x[keep], c0))
-    V = np.vander(x, degree + 1, increasing=True)
+    c0 = fit_curve(x[keep], y[keep], degree, basis)
+    scale = mad_scale(y[keep] - curve(x[keep], c0, basis))
+    V = np.vander(x, degree + 1, increasing=True) if basis == "distance" else features(x, degree + 1, basis)[0]
     res = least_squares(lambda c: V @ c - y, c0, jac=lambda c: V, loss="huber", f_scale=HUBER * scale,
                         x_scale="jac", method="trf")
     return res.x

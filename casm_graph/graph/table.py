@@ -134,7 +134,7 @@ class Problem:
         self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
         self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
-        self.n_poly = len(model.reading_poly)
+        self.n_poly, self.basis = len(model.reading_poly), model.reading_basis
         w = np.ones(len(log.obs_t)) if weight is None else np.asarray(weight, float)
         self.r_w, self.b_w = np.sqrt(w[r]), np.sqrt(w[b])
         self.counts = {"reading": float(np.sum(w[r])), "bearing": float(np.sum(w[b]))}
@@ -146,7 +146,7 @@ class Problem:
         e, J = factors.action.error(P[:-1], P[1:], st.velocities[lay.seg_action], lay.seg_steps, lay.seg_dt)
         w = 1.0 / self.motion_sigma
         ae, aJ = e * w, [j * w[:, :, None] for j in J]
-        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z)
+        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z, self.basis)
         re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
         loss = float(np.sum(self.r_w ** 2 * robust.huber_loss(re, self.k)))
         w = robust.huber(re, self.k) * self.r_w       # a wild sighting pulls like one HUBER sigmas off, no more

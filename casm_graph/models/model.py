@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from casm_graph.io.log import Log, LogError
+from factors.reading import BASES, curve, features
 from casm_graph.io.output import strict
 
 SCHEMA = "casm-graph/model/1"
@@ -27,7 +28,7 @@ class Model:
 
     action_ids: np.ndarray
     velocities: np.ndarray                  # (A, 3) vx, vy, w
-    reading_poly: np.ndarray                # c0..cD, reading = sum c_i d**i
+    reading_poly: np.ndarray                # c0..cD, reading = sum c_i u**i, u = d (or 1/d: reading_basis)
     reading_sigma: float
     bearing_sigma: float
     motion_noise: np.ndarray = field(default_factory=lambda: np.array(PAPER_MOTION_NOISE))
@@ -39,6 +40,7 @@ class Model:
     fit: dict = field(default_factory=dict)
     command: object | None = None           # command_model.CommandModel for continuous commands
     channels: tuple[str, ...] = CHANNELS    # sensor channels the model was fitted on (the others are unknown)
+    reading_basis: str = "distance"         # the curve's variable: "distance" or "inverse_distance" (factors.reading)
 
     def has(self, channel: str) -> bool:
         """Whether the model knows the sensor ``channel`` ('reading' or 'bearing')."""
@@ -51,18 +53,23 @@ class Model:
         return format(self.reading_sigma if channel == "reading" else self.bearing_sigma, spec)
 
     def curve_text(self, spec: str = ".5g") -> str:
-        """The sensor polynomial's coefficients, or 'not measured' on a bearing-only model."""
-        return ", ".join(format(c, spec) for c in self.reading_poly) if self.has("reading") else "not measured"
+        """The sensor polynomial's coefficients (in 1/d when that is its basis), or 'not measured' on a
+        bearing-only model."""
+        if not self.has("reading"):
+            return "not measured"
+        text = ", ".join(format(c, spec) for c in self.reading_poly)
+        return text + (" (powers of 1/d)" if self.reading_basis == "inverse_distance" else "")
 
     def reading(self, d) -> np.ndarray:
-        return np.polynomial.polynomial.polyval(np.asarray(d, float), self.reading_poly)
+        """The sensor curve at distances ``d``."""
+        return curve(d, self.reading_poly, self.reading_basis)
 
     def reading_std(self, d) -> np.ndarray:
         """Posterior std of the sensor curve at distances ``d`` (from ``reading_poly_cov``; NaN without it)."""
         d = np.asarray(d, float)
         if self.reading_poly_cov is None:
             return np.full(d.shape, np.nan)
-        V = np.vander(d.ravel(), len(self.reading_poly), increasing=True)
+        V = features(d.ravel(), len(self.reading_poly), self.reading_basis)[0]
         var = np.einsum("ni,ij,nj->n", V, np.asarray(self.reading_poly_cov, float), V)
         return np.sqrt(np.clip(var, 0, None)).reshape(d.shape)
 
@@ -112,6 +119,7 @@ class Model:
         reading = self.has("reading")
         sensor = {"channels": list(self.channels),
                   "reading_poly": self.reading_poly.tolist() if reading else None,
+                  **({"reading_basis": self.reading_basis} if reading else {}),
                   "reading_sigma": float(self.reading_sigma) if reading else None,
                   "bearing_sigma": float(self.bearing_sigma) if self.has("bearing") else None,
                   "distance_range": [float(x) for x in self.distance_range]}
@@ -365,6 +373,10 @@ def _from_json(cls, data, w: _Where) -> Model:
             if reading
             else np.zeros(2))      # a bearing-only model has no curve: a placeholder no one reads
     D = len(poly)
+    basis = sm.get("reading_basis", "distance")
+    if reading and basis not in BASES:
+        w.fail("sensor_model.reading_basis", f"must be one of {', '.join(map(repr, BASES))} "
+                                             f"(got {_one_line(repr(basis))[:60]})")
     dr = w.vec(sm["distance_range"], "sensor_model.distance_range", n=2, nonneg=True) \
         if sm.get("distance_range") is not None else np.zeros(2)
     if dr[1] < dr[0]:
@@ -394,10 +406,11 @@ def _from_json(cls, data, w: _Where) -> Model:
                               if "bearing" in channels else PAPER_START_BEARING_SIGMA),
                channels=channels,
                motion_noise=motion, distance_range=(float(dr[0]), float(dr[1])), velocity_std=vstd,
-               reading_poly_std=poly_std, reading_poly_cov=poly_cov, effects=effects, fit=fit, command=command)
+               reading_poly_std=poly_std, reading_poly_cov=poly_cov, effects=effects, fit=fit, command=command,
+               reading_basis=basis if reading else "distance")
 
 
-def paper_start(log: Log, degree: int = 3) -> Model:
+def paper_start(log: Log, degree: int = 3, basis: str = "distance") -> Model:
     """The EKFS-EM paper's starting point: zero velocities and a very poor linear sensor model.
 
     The line is flat at the median reading (it knows the readings' scale, nothing of their
@@ -411,4 +424,4 @@ def paper_start(log: Log, degree: int = 3) -> Model:
         poly[0] = float(np.nanmedian(log.obs_reading))
     return Model(action_ids=ids, velocities=np.zeros((len(ids), 3)), reading_poly=poly,
                  reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
-                 channels=log.channels)
+                 channels=log.channels, reading_basis=basis)

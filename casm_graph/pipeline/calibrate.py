@@ -26,6 +26,7 @@ from casm_graph.models.effects.regional_motion_noise import Regions
 from casm_graph.models.model import paper_start
 from casm_graph.report import command as command_report
 from casm_graph.report import pages as report
+from factors.reading import BASES
 
 SCASM_METHODS = scasm_run.METHODS             # 1-D logs: their own model kinds and report
 CONTINUOUS_METHODS = ("graph", "graph-em", "ekfs-em", "ekfs-em-learned")   # the methods with a command-map action model
@@ -87,6 +88,11 @@ def check_request(options: CalibrateOptions) -> list:
         raise LogError(f"--sensor-degree must be between 1 and 6 (got {options.sensor_degree})")
     if not 1 <= options.max_sensor_degree <= 6:
         raise LogError(f"--max-sensor-degree must be between 1 and 6 (got {options.max_sensor_degree})")
+    if options.sensor_basis not in BASES:
+        raise LogError(f"--sensor-basis must be one of {', '.join(BASES)} (got {options.sensor_basis!r})")
+    if options.sensor_basis != "distance" and options.method not in ("graph", "graph-em"):
+        raise LogError(f"--sensor-basis {options.sensor_basis}: the {options.method} method fits a polynomial in the "
+                       f"distance only; use --method graph or graph-em")
     return classes
 
 
@@ -109,7 +115,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
             why = cls(log).applicable(log)
             if why:
                 raise LogError(f"effect {cls.name!r} cannot be fitted on {log.source or 'this log'}: {why}")
-        start = paper_start(log, options.sensor_degree)
+        start = paper_start(log, options.sensor_degree, options.sensor_basis)
         mixture = options.method == "graph" and any(cls.name == "false_detections" for cls in classes)
         extra = {"options": options.graph} if options.method in ("graph", "graph-em") else {}
         if options.method == "graph":
@@ -130,7 +136,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         if classes and options.method != "graph":
             raise LogError(f"--method {options.method}: effects on continuous commands are fitted by the graph method")
         grid = parse_regions(options.regions, log)
-        start = continuous.start_model(log, options.sensor_degree)
+        start = continuous.start_model(log, options.sensor_degree, basis=options.sensor_basis)
         if options.method != "graph":
             fit = METHODS[options.method](log, start, seed=options.seed, progress=progress)
         elif classes:
@@ -148,13 +154,13 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
         effects: tuple = (), seed: int = 0, progress: Progress | None = None,
         regions: str | None = None, force: bool = False, command: str | None = None,
-        max_sensor_degree: int = 6) -> tuple[Log, Fit | dict]:
+        max_sensor_degree: int = 6, sensor_basis: str = "distance") -> tuple[Log, Fit | dict]:
     """Load the bundle at ``log_dir``, calibrate it and write the run to ``out``; bad input raises LogError first.
 
     Returns the log and the method's :class:`Fit` (the model dict for the 1-D methods)."""
     checked_out(out, force, inputs=[log_dir])
     options = CalibrateOptions(method=method, sensor_degree=sensor_degree, effects=tuple(effects), seed=seed,
-                               regions=regions, max_sensor_degree=max_sensor_degree)
+                               regions=regions, max_sensor_degree=max_sensor_degree, sensor_basis=sensor_basis)
     check_request(options)
     log = load(log_dir)
     cal = calibrate(log, options, progress=progress, command=command)

@@ -25,7 +25,7 @@ from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
-from casm_graph.fit.sensor_degree import choose_degree
+from casm_graph.fit.sensor_degree import choose_curve
 from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import noise
@@ -189,6 +189,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     fraction, weight = co.fraction, None
     model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
     realiased, init = co.realiased, co.init
+    unpruned = log
     pruned = outlying(log, model, poses)
     log = prune(log, pruned)
 
@@ -208,12 +209,15 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
             progress.step(1)
         ok = ~np.isnan(log.obs_reading)         # the readings' distances, kept for distance_range below
         d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[ok]
-        better = None if attempt else choose_degree(d, log.obs_reading[ok], model.reading_poly,
-                                                    model.reading_sigma, max_sensor_degree)
+        better = None if attempt else choose_curve(d, log.obs_reading[ok], model.reading_poly,
+                                                   model.reading_sigma, max_sensor_degree, model.reading_basis)
         if better is None:
             break
-        model = model.with_(reading_poly=better)          # the data demand a bendier curve: the full graph again
-        progress.stage(f"full graph, sensor degree {len(better) - 1}", o.full_rounds)
+        model = model.with_(reading_poly=better[0], reading_basis=better[1])   # the data demand another curve:
+        pruned = outlying(unpruned, model, poses)                              # its outliers, the full graph again
+        log = prune(unpruned, pruned)
+        progress.stage(f"full graph, sensor degree {len(better[0]) - 1}"
+                       + (" in 1/d" if better[1] == "inverse_distance" else ""), o.full_rounds)
     converged = h.converged
     final_cost = problem.cost(st)
 
@@ -240,7 +244,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                              "seconds": round(time.perf_counter() - t0, 3),
                              "log_likelihood": ll, "converged": bool(converged),
                              "outliers_pruned": int(pruned.sum()),
-                             "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1},
+                             "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1,
+                                               "basis": model.reading_basis},
                              **({} if "bearing" in log.channels else {"heading_agreement": (
                                  round(init.heading_agreement, 4) if np.isfinite(init.heading_agreement) else None)})},
                         effects={FalseDetections.name: {"fraction": fraction}} if mixture else {})
