@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from casm_graph.fit.locate import grid_cell, locate
-from casm_graph.fit.windows import inverse_curve, window_start
+from casm_graph.fit.windows import curve_at, inverse_curve, window_start
 from casm_graph.graph import robust
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.model import Model
@@ -308,9 +308,9 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
                      len(model.reading_poly) - 1, cell)
         mean, poly, res, (p, k), ev = loc.mean, loc.poly, loc.residual, loc.hypothesis, loc.log_evidence
         if model.reading_basis != "distance":        # the curve the user asked for, at the located distances
-            d = np.hypot(*(mean[obs_knot] - lm).T)[~np.isnan(log.obs_reading)]
-            poly = robust.polyfit(d, log.obs_reading[~np.isnan(log.obs_reading)], len(poly) - 1, model.reading_basis)
-            res = log.obs_reading[~np.isnan(log.obs_reading)] - curve(d, poly, model.reading_basis)
+            poly, _ = curve_at(log, mean[obs_knot], len(poly) - 1, model.reading_basis)
+            has_r = ~np.isnan(log.obs_reading)
+            res = log.obs_reading[has_r] - curve(np.hypot(*(mean[obs_knot] - lm).T)[has_r], poly, model.reading_basis)
 
     # 2. headings per constant-action segment from bearings
     act = log.action
