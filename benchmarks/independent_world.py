@@ -55,7 +55,7 @@ def addable(effect: str | None, log) -> bool:
 
 
 def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3,
-          sensor_basis: str = "distance") -> dict:
+          sensor_basis: str = "auto") -> dict:
     """One world (sightings no closer than ``min_range``): calibrate (the sensor curve in ``sensor_basis``),
     diagnose, add the named (or hidden) effect, diagnose again."""
     t0 = time.perf_counter()
@@ -66,7 +66,8 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
         base = cg.calibrate(log, seed=seed, sensor_basis=sensor_basis)
         d1 = cg.diagnose(log, base)
         add = d1.to_add() if d1.verdict in CATALOG else (effect if addable(effect, log) else None)
-        row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "sensor_basis": sensor_basis, "strength": truth.get("strength"),
+        row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "sensor_basis": sensor_basis,
+               "basis": base.model.reading_basis, "strength": truth.get("strength"),
                "seed": seed, "minutes": minutes, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],
                "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
@@ -118,7 +119,7 @@ def main():
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--out", default="independent_world.jsonl")
     ap.add_argument("--min-range", type=float, default=0.3, help="closest sighting in the world, m")
-    ap.add_argument("--sensor-basis", default="distance", choices=("distance", "inverse_distance"))
+    ap.add_argument("--sensor-basis", default="auto", choices=("auto", "distance", "inverse_distance"))
     ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     if args.table:

@@ -253,9 +253,10 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--max-sensor-degree", type=int, default=6,
                    help="the graph method raises the degree up to this when the readings demand a bendier curve "
                         "(set it to --sensor-degree to keep that degree)")
-    c.add_argument("--sensor-basis", default="distance", choices=("distance", "inverse_distance"),
+    c.add_argument("--sensor-basis", default="auto", choices=("auto", "distance", "inverse_distance"),
                    help="the sensor curve's variable: a polynomial in the distance (the paper's) or in 1/distance, "
-                        "for a reading that is an apparent size (pixels), which falls as 1/d")
+                        "for a reading that is an apparent size (pixels), which falls as 1/d; auto (default): the "
+                        "distance, and 1/d competing when the fit in d misses near the landmarks (graph method)")
     c.add_argument("--regions", default=None, metavar="NX,NY[,X0,Y0,X1,Y1]",
                    help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")

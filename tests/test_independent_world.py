@@ -7,7 +7,8 @@ the paper's errors times 1.5 (PAPERS.md section 1: vx 23.06 mm/s, vy 18.34 mm/s,
 curve 0.35 px) and, for the command map, a quarter of the error of taking the commands at face value
 (the fit's is a tenth of it or less on seeds 0 and 1). The apparent-size curve over 0.3-8 m is too bent
 for the paper's cubic (held at degree 3 it misses by 0.8-4.8 px and the table by up to 41 mm/s): the fit
-raises the degree when the readings demand (``fit.sensor_degree``, BENCHMARKS.md "Independent world").
+raises the degree or takes the curve in 1/d when the readings demand (``fit.sensor_degree``, BENCHMARKS.md
+"Independent world").
 """
 import numpy as np
 import pytest
@@ -40,7 +41,8 @@ def _curve_rms(cal, log, truth):
 def test_action_table_robot_of_another_world(tmp_path):
     truth, log = _world(tmp_path, kind="table", seed=1)
     cal = cg.calibrate(log, seed=1)
-    assert cal.model.fit["sensor_degree"]["asked"] == 3 and cal.model.fit["sensor_degree"]["fitted"] > 3
+    sd = cal.model.fit["sensor_degree"]          # not the stiff cubic in d: a higher degree, or the curve in 1/d
+    assert sd["asked"] == 3 and (sd["fitted"] > 3 or sd["basis"] == "inverse_distance"), sd
     true = np.array([truth["realized_velocities"][str(int(a))] for a in cal.model.action_ids])
     rms = np.sqrt(np.mean((cal.model.velocities - true) ** 2, axis=0))
     assert np.all(rms < 1.5 * PAPER), rms
@@ -50,23 +52,34 @@ def test_action_table_robot_of_another_world(tmp_path):
 
 @pytest.mark.science
 def test_an_apparent_size_seen_from_close_takes_the_inverse_distance_curve(tmp_path):
-    """Sightings from 0.3 m: the apparent size a / (d + b) + c is beyond a polynomial in d (the fit lands
-    in a warped basin: position 0.16-0.24 m on seeds 3, 6, 7 at six minutes); a cubic in 1/d follows it, so
-    ``--sensor-basis inverse_distance`` brings the position error to the paper's scale and the curve within a
-    noise sigma (BENCHMARKS.md "Independent world")."""
+    """Sightings from 0.3 m: the apparent size a / (d + b) + c is beyond a polynomial in d (from the paper's
+    flat start the fit lands in a basin where near sightings put the robot almost on the landmark: position
+    0.16-0.24 m on seeds 3, 6, 7 at six minutes); a cubic in 1/d follows it. The default (``auto``) sees the
+    marks of that misfit, fits the curve in 1/d too and keeps it on its likelihood over every sighting
+    (BENCHMARKS.md "Independent world")."""
     truth = generate(tmp_path / "log", kind="table", minutes=6, seed=3, min_range=0.3)
     log = cg.load_log(tmp_path / "log")
-    base = cg.calibrate(log, seed=3)
-    inv = cg.calibrate(log, seed=3, sensor_basis="inverse_distance")
-    assert inv.model.reading_basis == "inverse_distance" and base.model.reading_basis == "distance"
-    assert position_rms(inv, log) < 0.05
-    assert position_rms(inv, log) < 0.5 * position_rms(base, log)
-    assert _curve_rms(inv, log, truth) < truth["noise"]["reading_sigma"]
-    inv.save(tmp_path / "run")                                  # model.json keeps the basis
+    in_d = cg.calibrate(log, seed=3, sensor_basis="distance")
+    auto = cg.calibrate(log, seed=3)
+    assert in_d.model.reading_basis == "distance" and auto.model.reading_basis == "inverse_distance"
+    assert [t["basis"] for t in auto.model.fit["sensor_degree"]["tried"]] == ["distance", "inverse_distance"]
+    assert position_rms(auto, log) < 0.05
+    assert position_rms(auto, log) < 0.5 * position_rms(in_d, log)
+    assert _curve_rms(auto, log, truth) < truth["noise"]["reading_sigma"]
+    auto.save(tmp_path / "run")                                  # model.json keeps the basis
     again = Model.load(tmp_path / "run" / "model.json")
-    assert again.fit["options"]["sensor_basis"] == "inverse_distance"
-    assert again.reading_basis == "inverse_distance"
-    assert np.allclose(again.reading(np.array([0.5, 2.0, 6.0])), inv.model.reading(np.array([0.5, 2.0, 6.0])))
+    assert again.fit["options"]["sensor_basis"] == "auto" and again.reading_basis == "inverse_distance"
+    assert np.allclose(again.reading(np.array([0.5, 2.0, 6.0])), auto.model.reading(np.array([0.5, 2.0, 6.0])))
+
+
+def test_a_clean_log_keeps_the_curve_in_d_untouched(tmp_path):
+    """On the project's Aibo (a clean log: nothing pruned, the cubic kept) ``auto`` fits once, in d: the same
+    calibration as ``--sensor-basis distance``, to the bit."""
+    log, _ = cg.simulate("aibo", minutes=2, seed=4)
+    auto, in_d = cg.calibrate(log, seed=0), cg.calibrate(log, seed=0, sensor_basis="distance")
+    assert auto.model.reading_basis == "distance" and "tried" not in auto.model.fit["sensor_degree"]
+    assert np.array_equal(auto.model.reading_poly, in_d.model.reading_poly)
+    assert np.array_equal(auto.trajectory["x"], in_d.trajectory["x"])
 
 
 @pytest.mark.science

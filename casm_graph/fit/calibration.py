@@ -47,7 +47,8 @@ class CalibrateOptions:
     graph: GraphOptions = field(default_factory=GraphOptions)   # the action-table graph's search (graph, graph-em)
     command_graph: CommandGraphOptions = field(default_factory=CommandGraphOptions)   # the continuous-command graph's search
     max_sensor_degree: int = 6         # the graph method raises the sensor degree up to this when the data demand
-    sensor_basis: str = "distance"     # the curve's variable: "distance" (the paper's) or "inverse_distance" (a size)
+    sensor_basis: str = "auto"         # the curve's variable: "distance" (the paper's), "inverse_distance" (a size),
+                                       # or "auto": d, and 1/d competing when the fit in d misses near the landmarks
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,

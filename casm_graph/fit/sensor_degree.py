@@ -7,15 +7,24 @@ against the fitted distances are regressed on polynomials in d and in 1/d (:mod:
 ``max_degree``; the curve with the lowest BIC is taken when it changes the curve materially (by more than
 ``MATERIAL`` of the reading sigma, RMS over the sighted distances), so a curve the asked one already
 follows keeps it.
+
+That choice cannot find 1/d from a fit in d that went wrong near the landmarks (from the paper's flat start
+a steep apparent size puts the robot almost on the landmark, and those distances favour d). So when a fit
+in d shows the marks of it (:func:`suspect`), a second calibration starts with the curve in 1/d and the
+two are scored on every sighting, each under its own noise levels (:func:`better_curve`).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from casm_graph.io.log import Log
+from casm_graph.models.model import Model
 from factors.reading import BASES, curve, fit_curve
 
 MATERIAL = 0.2           # share of the reading sigma the better curve must move by, RMS over the sightings
 TAIL = 4.0               # readings further than this many robust sigmas off the fitted curve stay out
+SUSPECT_PRUNED = 0.002   # share of the readings pruned beyond which a fit in d is tried against one in 1/d
+MARGIN = 10.0            # the other curve's score must be higher by this (and BIC's penalty for its extra terms)
 
 
 def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, sigma: float, max_degree: int,
@@ -47,3 +56,30 @@ def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, si
         return None
     moved = curve(d, fits[best][1], best[0]) - curve(d, poly, basis)
     return (fits[best][1], best[0]) if np.sqrt(np.mean(moved ** 2)) > MATERIAL * sigma else None
+
+
+def suspect(model: Model, log: Log) -> bool:
+    """Whether a calibration shows the marks of a curve that misses near the landmarks: the data raised its
+    degree, or it pruned more than ``SUSPECT_PRUNED`` of the readings (a clean log prunes about 1 in 100,000)."""
+    degree = model.fit.get("sensor_degree", {})
+    n = int(np.sum(np.isfinite(log.obs_reading)))
+    return n > 0 and (degree.get("fitted", 0) > degree.get("asked", 0)
+                      or model.fit.get("outliers_pruned", 0) > SUSPECT_PRUNED * n)
+
+
+def better_curve(log: Log, first, other, scores: tuple[float, float]):
+    """``other`` (a fit with another sensor curve) when its score (log-likelihood of every sighting of ``log``,
+    each fit under its own noise levels) beats ``first``'s by more than ``MARGIN`` plus BIC's half log n per extra
+    coefficient, and its curve differs materially (by more than ``MATERIAL`` of the reading sigma, RMS over the
+    sightings); else ``first``. The choice is recorded in ``fit.sensor_degree`` (``tried``: each curve's score)."""
+    ok = np.isfinite(log.obs_reading)
+    extra = len(other.model.reading_poly) - len(first.model.reading_poly)
+    d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - other.poses[log.obs_step[ok], :2]).T)
+    moved = np.sqrt(np.mean((other.model.reading(d) - first.model.reading(d)) ** 2))
+    take = (scores[1] - MARGIN - 0.5 * extra * np.log(max(int(ok.sum()), 2)) > scores[0]
+            and moved > MATERIAL * min(first.model.reading_sigma, other.model.reading_sigma))
+    keep = other if take else first
+    tried = [{"basis": f.model.reading_basis, "degree": len(f.model.reading_poly) - 1, "score": round(float(c), 1)}
+             for f, c in zip((first, other), scores)]
+    keep.model.fit["sensor_degree"] = {**keep.model.fit.get("sensor_degree", {}), "tried": tried}
+    return keep

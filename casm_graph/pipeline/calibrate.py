@@ -88,12 +88,17 @@ def check_request(options: CalibrateOptions) -> list:
         raise LogError(f"--sensor-degree must be between 1 and 6 (got {options.sensor_degree})")
     if not 1 <= options.max_sensor_degree <= 6:
         raise LogError(f"--max-sensor-degree must be between 1 and 6 (got {options.max_sensor_degree})")
-    if options.sensor_basis not in BASES:
-        raise LogError(f"--sensor-basis must be one of {', '.join(BASES)} (got {options.sensor_basis!r})")
-    if options.sensor_basis != "distance" and options.method not in ("graph", "graph-em"):
+    if options.sensor_basis not in (*BASES, "auto"):
+        raise LogError(f"--sensor-basis must be one of auto, {', '.join(BASES)} (got {options.sensor_basis!r})")
+    if options.sensor_basis not in ("distance", "auto") and options.method not in ("graph", "graph-em"):
         raise LogError(f"--sensor-basis {options.sensor_basis}: the {options.method} method fits a polynomial in the "
                        f"distance only; use --method graph or graph-em")
     return classes
+
+
+def start_basis(options: CalibrateOptions) -> str:
+    """The sensor curve's variable a calibration starts in ("auto" starts in the distance)."""
+    return "distance" if options.sensor_basis == "auto" else options.sensor_basis
 
 
 def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progress | None = None,
@@ -115,11 +120,12 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
             why = cls(log).applicable(log)
             if why:
                 raise LogError(f"effect {cls.name!r} cannot be fitted on {log.source or 'this log'}: {why}")
-        start = paper_start(log, options.sensor_degree, options.sensor_basis)
+        start = paper_start(log, options.sensor_degree, start_basis(options))
         mixture = options.method == "graph" and any(cls.name == "false_detections" for cls in classes)
         extra = {"options": options.graph} if options.method in ("graph", "graph-em") else {}
         if options.method == "graph":
             extra["max_sensor_degree"] = options.max_sensor_degree
+            extra["free_basis"] = options.sensor_basis == "auto" and options.max_sensor_degree > options.sensor_degree
         fit = METHODS[options.method](log, start, seed=options.seed, progress=progress,
                                       **({"mixture": True} if mixture else {}), **extra)
         if classes:
@@ -136,7 +142,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         if classes and options.method != "graph":
             raise LogError(f"--method {options.method}: effects on continuous commands are fitted by the graph method")
         grid = parse_regions(options.regions, log)
-        start = continuous.start_model(log, options.sensor_degree, basis=options.sensor_basis)
+        start = continuous.start_model(log, options.sensor_degree, basis=start_basis(options))
         if options.method != "graph":
             fit = METHODS[options.method](log, start, seed=options.seed, progress=progress)
         elif classes:
@@ -154,7 +160,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
         effects: tuple = (), seed: int = 0, progress: Progress | None = None,
         regions: str | None = None, force: bool = False, command: str | None = None,
-        max_sensor_degree: int = 6, sensor_basis: str = "distance") -> tuple[Log, Fit | dict]:
+        max_sensor_degree: int = 6, sensor_basis: str = "auto") -> tuple[Log, Fit | dict]:
     """Load the bundle at ``log_dir``, calibrate it and write the run to ``out``; bad input raises LogError first.
 
     Returns the log and the method's :class:`Fit` (the model dict for the 1-D methods)."""

@@ -25,7 +25,7 @@ from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
-from casm_graph.fit.sensor_degree import choose_curve
+from casm_graph.fit.sensor_degree import better_curve, choose_curve, suspect
 from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import noise
@@ -178,10 +178,30 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
 @register("graph")
 def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         marginals: bool = True, mixture: bool = False, options: GraphOptions | None = None,
-        max_sensor_degree: int = 0) -> Fit:
+        max_sensor_degree: int = 0, free_basis: bool = False) -> Fit:
     """Calibrate ``log`` from the paper's start ``start`` with the factor graph (``mixture``: with the
     false-detection mixture in every round, as ``--effect false_detections`` asks; ``max_sensor_degree``:
-    the sensor polynomial's degree may rise to it when the data demand, :mod:`casm_graph.fit.sensor_degree`)."""
+    the sensor polynomial's degree may rise to it when the data demand; ``free_basis``: when the fit in d
+    shows a near-range misfit, a fit with the curve in 1/d competes, :mod:`casm_graph.fit.sensor_degree`)."""
+    first = _fit(log, start, seed, progress, marginals, mixture, options, max_sensor_degree)
+    if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log)):
+        return first
+    (progress or Progress()).stage("the sensor curve in 1/d", None)
+    other = _fit(log, start.with_(reading_basis="inverse_distance"), seed, progress, marginals, mixture, options,
+                 max_sensor_degree)
+    return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)))
+
+
+def sighting_log_likelihood(log: Log, fit: Fit) -> float:
+    """:func:`log_likelihood` of ``fit`` at its poses and noise levels on every sighting of ``log`` (the pruned
+    ones too, through Huber's loss): fits that pruned different sightings scored on the same data."""
+    lay = G.layout(log, fit.model, stride=1)
+    return log_likelihood(G.Problem(log, lay, fit.model).cost(G.state(fit.poses, fit.model)), lay, log, fit.model)
+
+
+def _fit(log: Log, start: Model, seed: int, progress: Progress | None, marginals: bool, mixture: bool,
+         options: GraphOptions | None, max_sensor_degree: int) -> Fit:
+    """One calibration from ``start`` (:func:`fit`'s arguments)."""
     o = options or GraphOptions()
     progress = progress or Progress()
     t0 = time.perf_counter()
