@@ -145,6 +145,9 @@ def test_verdict_rule():
     assert D.verdict([cand("lens_distortion", -563, -27.7)], [lens], explains)[0] == "lens_distortion"
     assert D.verdict([cand("lens_distortion", -563, -27.7)], [strong], explains)[0] == "unexplained:heading"
     assert D.verdict([cand("lens_distortion", -5, -27.7)], [lens], explains)[0] == "unexplained:image_angle"
+    # ... but not a held-out loss that speaks against it (a fade named for a carpet's structure, -229.8 nats: the
+    # independent world's friction seed 0, BENCHMARKS.md)
+    assert D.verdict([cand("lens_distortion", -563, -229.8)], [lens], explains)[0] == "unexplained:image_angle"
     weak = {**strong, "strength": 0.015}                       # under half the strongest's: not the lag's evidence
     assert D.verdict([cand("actuator_lag", -50, -1)], [lens, weak], explains)[0] == "unexplained:image_angle"
     second = {**strong, "strength": 0.03}                      # at least half as strong: an effect shows in several

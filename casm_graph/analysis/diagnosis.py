@@ -69,6 +69,7 @@ class DiagnoseOptions:
                                        # share as strong as the strongest (an effect shows in several channels)
     bic_support: float = -10.0         # a verdict's delta BIC at most this (strong evidence on Kass and Raftery's scale)
     heldout_support: float = 0.0       # and the held-out log-likelihood must improve by more than this
+    heldout_veto: float = 50.0         # a structure match does not support a candidate whose held-out score falls by more
     bic_tie: float = 2.0               # delta BICs closer than this are no evidence either way: the held-out score decides
     lookalike_bic: float = 6.0         # supported candidates within this of the best explain the data about equally
     lookalike_relative: float = 0.1    # continuous logs: also within this share of the best's delta BIC (a profile is a
@@ -447,8 +448,11 @@ def built_for(strong: list[dict], explains: dict) -> Callable:
 
 
 def is_supported(c: Candidate, matches: Callable, options: DiagnoseOptions = DEFAULTS) -> bool:
-    """BIC supports ``c`` strongly and a second line agrees: the held-out score, or the structure it is built for."""
-    return c.delta_bic <= options.bic_support and (c.heldout_nll_drop > options.heldout_support or matches(c))
+    """BIC supports ``c`` strongly and a second line agrees: the held-out score, or the structure it is built for
+    unless the held-out score speaks against it (falls by more than ``options.heldout_veto`` nats)."""
+    return c.delta_bic <= options.bic_support and (
+        c.heldout_nll_drop > options.heldout_support
+        or (matches(c) and not c.heldout_nll_drop < -options.heldout_veto))
 
 
 def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None,
