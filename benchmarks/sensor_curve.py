@@ -19,6 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
+from casm_graph.analysis.groundtruth import position_rms  # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 
@@ -32,7 +33,7 @@ def errors(cal, log, truth) -> dict:
     d, r = np.array(truth["sensor_curve"]["samples"]).T
     sel = (d >= lo) & (d <= hi)
     return {"table": table, "curve": float(np.sqrt(np.mean((cal.model.reading(d[sel]) - r[sel]) ** 2))),
-            "position": float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))}
+            "position": position_rms(np.column_stack([tr["x"], tr["y"]]), log.truth)}
 
 
 def main() -> None:

@@ -39,6 +39,13 @@ def curve(d: np.ndarray, c: np.ndarray, basis: str = "distance") -> np.ndarray:
     return features(d, len(c), basis)[0] @ np.asarray(c, float)
 
 
+def slope(d: np.ndarray, c: np.ndarray, basis: str = "distance") -> np.ndarray:
+    """The sensor curve's derivative with respect to the distance at ``d``."""
+    if basis == "distance":
+        return np.polynomial.polynomial.polyval(np.asarray(d, float), np.polynomial.polynomial.polyder(c))
+    return features(d, len(c), basis)[1] @ np.asarray(c, float)
+
+
 def fit_curve(d: np.ndarray, reading: np.ndarray, degree: int, basis: str = "distance") -> np.ndarray:
     """Least-squares coefficients of a degree-``degree`` curve through ``(d, reading)``."""
     if basis == "distance":

@@ -29,7 +29,7 @@ from casm_graph.fit.windows import curve_at, inverse_curve, window_start
 from casm_graph.graph import robust
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.model import Model
-from factors.reading import curve, features
+from factors.reading import slope as curve_slope
 
 @dataclass
 class Start:
@@ -249,8 +249,7 @@ def _range_start(log: Log, model: Model, seg_start, seg_of_knot, seg_act, t_knot
     attempted = (np.array([log.attempted.get(int(a), np.full(3, np.nan)) for a in model.action_ids])
                  if log.attempted else None)
     dist = inverse_curve(poly, 0.05, max(d_max, 1.0), model.reading_basis)(log.obs_reading)
-    slope = np.abs(np.polynomial.polynomial.polyval(dist, np.polynomial.polynomial.polyder(poly))
-                   if model.reading_basis == "distance" else features(dist, len(poly), model.reading_basis)[1] @ poly)
+    slope = np.abs(curve_slope(dist, poly, model.reading_basis))
     weight = (slope / max(1.4826 * float(np.median(np.abs(res))), 1e-9)) ** 2   # inverse variance as a distance
     t_ref = np.full(n_seg, np.nan)
     nw = len(TURN_RATES)
@@ -308,9 +307,7 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
                      len(model.reading_poly) - 1, cell)
         mean, poly, res, (p, k), ev = loc.mean, loc.poly, loc.residual, loc.hypothesis, loc.log_evidence
         if model.reading_basis != "distance":        # the curve the user asked for, at the located distances
-            poly, _ = curve_at(log, mean[obs_knot], len(poly) - 1, model.reading_basis)
-            has_r = ~np.isnan(log.obs_reading)
-            res = log.obs_reading[has_r] - curve(np.hypot(*(mean[obs_knot] - lm).T)[has_r], poly, model.reading_basis)
+            poly, res = curve_at(log, mean[obs_knot], len(poly) - 1, model.reading_basis)
 
     # 2. headings per constant-action segment from bearings
     act = log.action

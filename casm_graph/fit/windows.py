@@ -70,22 +70,23 @@ class WindowStart:
     model: Model | None = None   # the start model, when the caller attached one (``with_model``)
 
 
-def curve_at(log: Log, poses_at_obs: np.ndarray, degree: int, basis: str) -> tuple[np.ndarray, float]:
+def curve_at(log: Log, poses_at_obs: np.ndarray, degree: int, basis: str) -> tuple[np.ndarray, np.ndarray]:
     """The sensor curve in ``basis`` (robust fit) through the readings at their distances from
-    ``poses_at_obs``, and its residuals' robust scale: a start's curve in the basis the user asked."""
+    ``poses_at_obs``, and the readings' residuals: a start's curve in the basis the user asked."""
     ok = np.isfinite(log.obs_reading)
     d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - poses_at_obs[ok, :2]).T)
     poly = robust.polyfit(d, log.obs_reading[ok], degree, basis)
-    return poly, robust.mad_scale(log.obs_reading[ok] - curve(d, poly, basis))
+    return poly, log.obs_reading[ok] - curve(d, poly, basis)
 
 
-def with_model(ws: WindowStart, model: Model, log: Log | None = None) -> WindowStart:
+def with_model(ws: WindowStart, model: Model, log: Log) -> WindowStart:
     """``ws`` and its alternatives carrying ``model`` with their own sensor curve and reading sigma (the
-    curve refitted at their poses when ``model``'s basis is not the distance, for which ``log`` is needed)."""
+    curve refitted at their poses from ``log`` when ``model``'s basis is not the distance)."""
     def one(w):
         poly, sigma = w.poly, w.reading_sigma
         if model.reading_basis != "distance" and model.has("reading"):
-            poly, sigma = curve_at(log, w.poses[log.obs_step], len(w.poly) - 1, model.reading_basis)
+            poly, res = curve_at(log, w.poses[log.obs_step], len(w.poly) - 1, model.reading_basis)
+            sigma = robust.mad_scale(res)
         m = model.with_(reading_poly=poly)
         if np.isfinite(sigma):
             m = m.with_(reading_sigma=sigma)

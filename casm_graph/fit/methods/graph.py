@@ -183,10 +183,11 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     false-detection mixture in every round, as ``--effect false_detections`` asks; ``max_sensor_degree``:
     the sensor polynomial's degree may rise to it when the data demand; ``free_basis``: when the fit in d
     shows a near-range misfit, a fit with the curve in 1/d competes, :mod:`casm_graph.fit.sensor_degree`)."""
+    progress = progress or Progress()
     first = _fit(log, start, seed, progress, marginals, mixture, options, max_sensor_degree)
     if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log)):
         return first
-    (progress or Progress()).stage("the sensor curve in 1/d", None)
+    progress.stage("the sensor curve in 1/d", None)
     other = _fit(log, start.with_(reading_basis="inverse_distance"), seed, progress, marginals, mixture, options,
                  max_sensor_degree)
     return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)))
@@ -199,11 +200,10 @@ def sighting_log_likelihood(log: Log, fit: Fit) -> float:
     return log_likelihood(G.Problem(log, lay, fit.model).cost(G.state(fit.poses, fit.model)), lay, log, fit.model)
 
 
-def _fit(log: Log, start: Model, seed: int, progress: Progress | None, marginals: bool, mixture: bool,
+def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool, mixture: bool,
          options: GraphOptions | None, max_sensor_degree: int) -> Fit:
     """One calibration from ``start`` (:func:`fit`'s arguments)."""
     o = options or GraphOptions()
-    progress = progress or Progress()
     t0 = time.perf_counter()
     co = coarse_start(log, start, seed, progress, mixture, o)
     fraction, weight = co.fraction, None
