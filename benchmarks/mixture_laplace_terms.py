@@ -2,7 +2,7 @@
 
 Calibrates a log with 5 % false detections hidden, fits the mixture effect as ``diagnose`` does,
 then runs the fold fit's call (effects and noise held) for 0, 1 and 4 iterations from that optimum
-and prints the log-likelihood split by ``EffectProblem.log_likelihood_terms``: motion and
+and prints the log-likelihood split by ``Problem.log_likelihood_terms``: motion and
 observation densities, the poses' Gaussian constant and half the log determinant of their information. Least squares climbs the joint density (motion + observation);
 the Laplace term is what moves the other way.
 

@@ -8,6 +8,7 @@ import casm_graph as cg
 from casm_graph.fit import effect_fit
 from casm_graph.fit.solve import _damping
 from casm_graph.graph import augmented as AU
+from casm_graph.graph.problem import THETA, Problem
 from casm_graph.models.effects import REGISTRY, catalog, get, of_model, spec
 from casm_graph.models.effects.base import held
 from casm_graph.models.effects.surface_friction import NODES, bilinear, extent_around
@@ -69,7 +70,7 @@ def test_effect_graph_jacobian_matches_numerical_differentiation(short, names):
     """Exact but for one documented shortcut: the latency's velocity is differentiated through the table only."""
     log, m = short
     effects = AU.instantiate(names, log)
-    p = AU.EffectProblem(log, m, effects)
+    p = Problem(log, m, effects, huber=False)
     st = p.state(log.truth[:, 1:], m, _theta_for(p, np.random.default_rng(0)))
     A, e, _ = p.jacobian(st)
     A = A.toarray()
@@ -96,7 +97,7 @@ def test_effect_graph_jacobian_matches_numerical_differentiation(short, names):
 def test_own_solver_equals_gtsam_on_the_effect_graph(short):
     log, m = short
     effects = AU.instantiate(["battery_fade", "actuator_lag", "lens_distortion"], log)
-    p = AU.EffectProblem(log, m, effects)
+    p = Problem(log, m, effects, huber=False)
     st = p.state(log.truth[:, 1:] + 0.01, m, _theta_for(p, np.random.default_rng(2)))
     dp, dt = p.solve_damped(p.normal_equations(st), 1e-3)
     g = p.linearize(st)
@@ -104,7 +105,7 @@ def test_own_solver_equals_gtsam_on_the_effect_graph(short):
     dv = g.optimize()
     ref = np.array([dv.at(gtsam.symbol_shorthand.X(i)) for i in range(p.lay.n_poses)])
     np.testing.assert_allclose(dp, ref, atol=1e-8)
-    np.testing.assert_allclose(dt, dv.at(AU.THETA), atol=1e-8)
+    np.testing.assert_allclose(dt, dv.at(THETA), atol=1e-8)
 
 
 def test_held_effect_keeps_its_parameters_while_the_rest_is_fitted(short):

@@ -52,11 +52,11 @@ def test_action_table_robot_of_another_world(tmp_path):
 
 @pytest.mark.science
 def test_an_apparent_size_seen_from_close_takes_the_inverse_distance_curve(tmp_path):
-    """Sightings from 0.3 m: the apparent size a / (d + b) + c is beyond a polynomial in d (from the paper's
-    flat start the fit lands in a basin where near sightings put the robot almost on the landmark: position
-    0.16-0.24 m on seeds 3, 6, 7 at six minutes); a cubic in 1/d follows it. The default (``auto``) sees the
-    marks of that misfit, fits the curve in 1/d too and keeps it on its likelihood over every sighting
-    (BENCHMARKS.md "Independent world")."""
+    """Sightings from 0.3 m: the apparent size a / (d + b) + c is beyond a polynomial in d (a cubic in d misses
+    the near readings and prunes them; before the standoff factor kept poses off the landmarks, the fit in d
+    parked near sightings on them: 0.16-0.24 m on seeds 3, 6, 7 at six minutes); a cubic in 1/d follows it.
+    The default (``auto``) sees the marks of that misfit, fits the curve in 1/d too and keeps it on its
+    likelihood over every sighting (BENCHMARKS.md "Independent world")."""
     truth = generate(tmp_path / "log", kind="table", minutes=6, seed=3, min_range=0.3)
     log = cg.load_log(tmp_path / "log")
     in_d = cg.calibrate(log, seed=3, sensor_basis="distance")
@@ -64,7 +64,7 @@ def test_an_apparent_size_seen_from_close_takes_the_inverse_distance_curve(tmp_p
     assert in_d.model.reading_basis == "distance" and auto.model.reading_basis == "inverse_distance"
     assert [t["basis"] for t in auto.model.fit["sensor_degree"]["tried"]] == ["distance", "inverse_distance"]
     assert position_rms(auto, log) < 0.05
-    assert position_rms(auto, log) < 0.5 * position_rms(in_d, log)
+    assert position_rms(auto, log) < 0.75 * position_rms(in_d, log)
     assert _curve_rms(auto, log, truth) < truth["noise"]["reading_sigma"]
     auto.save(tmp_path / "run")                                  # model.json keeps the basis
     again = Model.load(tmp_path / "run" / "model.json")

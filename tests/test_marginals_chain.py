@@ -15,9 +15,10 @@ from casm_graph.fit.methods import METHODS
 from casm_graph.fit.methods.graph import world_std
 from casm_graph.fit.outliers import prune
 from casm_graph.fit.solve import RIDGES, chain_marginals, marginals
-from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver, pose_equations, solve_arrow
+from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver, solve_arrow
 from casm_graph.graph import noise
 from casm_graph.graph import table as G
+from casm_graph.graph.problem import THETA, Problem, state
 from casm_graph.models.effects import get as get_effect
 from casm_graph.models.model import paper_start
 
@@ -40,14 +41,13 @@ def table_fit():
 def test_table_graph_marginals_equal_gtsam(table_fit):
     log, fit = table_fit
     lay = G.layout(log, fit.model, stride=1)
-    problem, st = G.Problem(log, lay, fit.model), G.state(fit.poses, fit.model)
+    problem, st = Problem(log, fit.model, lay=lay), state(fit.poses, fit.model)
     m, ridge = chain_marginals(problem, st)
     assert ridge == 0.0
     mg = gtsam.Marginals(problem.linearize(st), gtsam.VectorValues())
     ref = gtsam_poses(mg, lay.n_poses)
     np.testing.assert_allclose(m.pose_cov, ref, rtol=RTOL, atol=RTOL * np.abs(ref).max())
-    keys = gtsam.KeyVector([V(a) for a in range(lay.n_actions)] + [C(0)])
-    joint = mg.jointMarginalCovariance(keys).fullMatrix()
+    joint = mg.marginalCovariance(THETA)               # table rows, then the curve
     np.testing.assert_allclose(m.param_cov, joint, rtol=RTOL, atol=RTOL * np.abs(joint).max())
     # what the fit reported: the pose std in the map frame, the velocity and polynomial std
     std = np.sqrt(np.diagonal(ref, axis1=1, axis2=2))
@@ -60,7 +60,7 @@ def test_table_graph_marginals_equal_gtsam(table_fit):
 def test_noise_step_solves_equal_the_sparse_lu(table_fit):
     log, fit = table_fit
     lay = G.layout(log, fit.model, stride=1)
-    problem, st = G.Problem(log, lay, fit.model), G.state(fit.poses, fit.model)
+    problem, st = Problem(log, fit.model, lay=lay), state(fit.poses, fit.model)
     A, _, groups = problem.jacobian(st)
     chain, lu = arrow_solver(A, lay.n_poses), noise.information_lu(A, problem.column_order())
     b = np.random.default_rng(0).normal(size=(A.shape[1], 5))
@@ -113,13 +113,13 @@ def test_floor_graph_damped_step_equals_gtsam(hooked):
 @pytest.mark.parametrize("anchor", [None, 0.3])
 def test_table_pose_chain_step_equals_gtsam(table_fit, anchor):
     """The table graph's poses alone (graph-em's E-step), with and without the ranges-only heading anchor: the
-    chain's own damped step (chain.pose_equations) solves GTSAM's damped poses-only graph."""
+    chain's own damped step (the problem's poses-only normal equations) solves GTSAM's damped poses-only graph."""
     log, fit = table_fit
     lay = G.layout(log, fit.model, stride=1)
-    problem = G.Problem(log, lay, fit.model, anchor=anchor)
-    st = G.state(fit.poses + np.random.default_rng(0).normal(0.0, 0.02, fit.poses.shape), fit.model)
+    problem = Problem(log, fit.model, lay=lay, anchor=anchor)
+    st = state(fit.poses + np.random.default_rng(0).normal(0.0, 0.02, fit.poses.shape), fit.model)
     lam = 1e-3
-    dp, _ = solve_arrow(*pose_equations(problem, st), lam)
+    dp, _ = solve_arrow(*problem.normal_equations(st, poses_only=True), lam)
     g = problem.linearize(st, poses_only=True)
     for i in range(lay.n_poses):
         g.add(X(i), np.sqrt(lam) * np.eye(3), np.zeros(3), gtsam.noiseModel.Unit.Create(3))

@@ -41,7 +41,8 @@ from casm_graph.fit import continuous as CT
 from casm_graph.fit.outliers import kept
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
-from casm_graph.graph.augmented import AState, EffectProblem, instantiate, theta_from_model
+from casm_graph.graph.augmented import instantiate, theta_from_model
+from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects import of_model
 from casm_graph.models.model import Model
@@ -339,7 +340,7 @@ class NoiseParameter:
     upper: float = np.inf
 
 
-def noise_parameters(problem: EffectProblem, model: Model, theta: np.ndarray) -> list[NoiseParameter]:
+def noise_parameters(problem: Problem, model: Model, theta: np.ndarray) -> list[NoiseParameter]:
     """Every noise level of ``model``: sigmas, motion noise per axis, noise-only effect parameters."""
     out = [NoiseParameter(f"{ch}_sigma", ch, 0, float(getattr(model, f"{ch}_sigma")))
            for ch in ("reading", "bearing") if len(getattr(problem, f"{ch[0]}_knot")) and model.has(ch)]
@@ -415,7 +416,7 @@ class MarginalLikelihood(NoiseLikelihood):
     def set_aside(self) -> int:
         return self._set_aside
 
-    def __init__(self, problem: EffectProblem, st: AState, model: Model, integrate_parameters: bool = True):
+    def __init__(self, problem: Problem, st: State, model: Model, integrate_parameters: bool = True):
         self.problem, self.state, self.model = problem, st, model
         self.integrate = integrate_parameters
         measured = np.isfinite(problem.log.obs_reading) | np.isfinite(problem.log.obs_bearing)
@@ -610,7 +611,7 @@ class MarginalLikelihood(NoiseLikelihood):
 
 
 # ------------------------------------------------------------------------------ set-up
-def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -> tuple[EffectProblem, AState]:
+def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -> tuple[Problem, State]:
     """The effect graph of ``model`` on ``log`` and its MAP (poses, table, polynomial) at the model's noise.
 
     Gross outliers at ``poses`` are set aside first (:func:`casm_graph.fit.outliers.kept`, as the calibration
@@ -618,8 +619,8 @@ def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -
     reading sigma the sampler sees."""
     effects = instantiate(of_model(model.effects), log)
     theta = theta_from_model(effects, model)
-    problem = EffectProblem(log, model, effects, theta, obs_mask=kept(log, model, poses, effects),
-                            anchor=G.heading_anchor(log, poses))
+    problem = Problem(log, model, effects, theta=theta, obs_mask=kept(log, model, poses, effects), huber=False,
+                      anchor=G.heading_anchor(log, poses))
     st = problem.state(poses, model, theta)
     problem.refresh_noise_state(st)
     st, _ = least_squares(problem, st, max_iterations=iterations)

@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 
 from casm_graph.graph import table as G
-from casm_graph.graph.augmented import AState, EffectProblem
+from casm_graph.graph.problem import Problem, State
 
 RIDGES = (0.0, 1e-9, 1e-6)        # damping tried when the undamped system is singular to machine precision
 
 
-def predicted_floor(problem: EffectProblem, st: AState) -> float:
+def predicted_floor(problem: Problem, st: State) -> float:
     """The cost one undamped Gauss-Newton step from ``st`` predicts: ``problem.cost(st)`` less the quadratic
     model's decrease ``-g^T delta / 2`` (``delta = -H^-1 g``)."""
     cost = problem.cost(st)
@@ -43,7 +43,7 @@ def predicted_gain(log, base, effect, floor: float | None = None) -> float | Non
         floor = predicted_floor(base.problem, base.state)
     effects = list(base.effects) + [effect]
     theta = np.concatenate([np.asarray(base.theta, float), np.asarray(effect.start, float)])
-    problem = EffectProblem(log, base.model, effects, theta, anchor=G.heading_anchor(log, base.poses))
+    problem = Problem(log, base.model, effects, theta=theta, huber=False, anchor=G.heading_anchor(log, base.poses))
     st = problem.state(base.poses, base.model, theta)
     problem.refresh_noise_state(st)
     return float(floor - predicted_floor(problem, st))

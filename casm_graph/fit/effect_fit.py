@@ -11,7 +11,8 @@ import numpy as np
 
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
-from casm_graph.graph.augmented import AState, EffectProblem, estimate_noise, instantiate, theta_from_model
+from casm_graph.graph.augmented import estimate_noise, instantiate, theta_from_model
+from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.effects import Effect
 from casm_graph.models.model import Model
@@ -26,14 +27,14 @@ class EffectFit:
     poses: np.ndarray
     theta: np.ndarray
     effects: list
-    problem: EffectProblem
-    state: AState
+    problem: Problem
+    state: State
     log_likelihood: float
     iterations: int
     cost: list
 
 
-def describe(effects: list[Effect], problem: EffectProblem, theta: np.ndarray) -> dict:
+def describe(effects: list[Effect], problem: Problem, theta: np.ndarray) -> dict:
     return {e.name: e.describe(theta[s]) for e, s in zip(effects, problem.slices)}
 
 
@@ -50,12 +51,14 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
     effects = instantiate(effects, log)
     th = theta_from_model(effects, model) if theta is None else np.asarray(theta, float)
     cost, its = [], 0
-    problem = EffectProblem(log, model, effects, th, obs_mask, anchor=G.heading_anchor(log, poses))
+    problem = Problem(log, model, effects, theta=th, obs_mask=obs_mask, huber=False,
+                      anchor=G.heading_anchor(log, poses))
     st = problem.state(poses, model, th)
     mixture = any(e.outlier_fraction(th[sl]) > 0 for e, sl in zip(effects, problem.slices))
     # with fixed parameters one round, or two for a mixture, whose inlier weights follow the poses
     for r in range(rounds if fit_parameters else 1 + mixture):
-        problem = EffectProblem(log, model, effects, st.theta, obs_mask, anchor=G.heading_anchor(log, poses))
+        problem = Problem(log, model, effects, theta=st.theta, obs_mask=obs_mask, huber=False,
+                          anchor=G.heading_anchor(log, poses))
         problem.refresh_noise_state(st)
         st, h = least_squares(problem, st, max_iterations=iterations, on_iteration=on_iteration,
                               freeze_parameters=not fit_parameters, rel_tol=rel_tol)
@@ -64,8 +67,9 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
         model = model.with_(velocities=st.velocities, reading_poly=st.poly)
         if fit_parameters and fit_noise:
             model, theta_new = estimate_noise(problem, st, model, seed=seed + r)
-            st = AState(st.poses, st.velocities, st.poly, theta_new)
-    problem = EffectProblem(log, model, effects, st.theta, obs_mask, anchor=G.heading_anchor(log, poses))
+            st = State(st.poses, st.velocities, st.poly, theta_new)
+    problem = Problem(log, model, effects, theta=st.theta, obs_mask=obs_mask, huber=False,
+                      anchor=G.heading_anchor(log, poses))
     problem.refresh_noise_state(st)
     ll = problem.log_likelihood(st)
     model = model.with_(effects=describe(effects, problem, st.theta))

@@ -13,7 +13,7 @@ import numpy as np
 from scipy import stats
 
 from casm_graph.graph import chain
-from casm_graph.graph.augmented import AState, EffectProblem
+from casm_graph.graph.problem import Problem, State
 from casm_graph.graph.table import Layout
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects.regional_motion_noise import region_of
@@ -104,12 +104,12 @@ class Channel:
     #                                                                smoothed pose absorbs (:func:`sighting_leverage`)
 
 
-def sighting_leverage(problem: EffectProblem, st: AState) -> dict[str, np.ndarray]:
+def sighting_leverage(problem: Problem, st: State) -> dict[str, np.ndarray]:
     """Per observation, the leverage h = j Sigma j^T of its reading and of its bearing row (whitened pose Jacobian
     j, the smoothed pose's covariance Sigma with the parameters held; NaN where not measured). A residual's
     variance is its noise's times 1 - h: a sighting that pins its pose (near, where the sensor curve is steep)
     leaves a smaller residual, which a test of the residuals' spread would read as noise growing with distance."""
-    r = problem.rows(st)
+    r = problem.rows(st, parameters=False)
     D, B = chain.information_blocks(problem, st, rows=r)
     try:
         cov = chain.select_inverse(D, B)[0]
@@ -123,7 +123,7 @@ def sighting_leverage(problem: EffectProblem, st: AState) -> dict[str, np.ndarra
     return out
 
 
-def channels(problem: EffectProblem, st: AState) -> dict[str, Channel]:
+def channels(problem: Problem, st: State) -> dict[str, Channel]:
     """Residual channels of ``st`` under ``problem`` (its noise levels, effects and masks)."""
     log = problem.log
     out = {}

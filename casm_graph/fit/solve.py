@@ -1,8 +1,9 @@
-"""Levenberg-Marquardt driven from Python over a :class:`casm_graph.graph.table.Problem`, and the marginals.
+"""Levenberg-Marquardt driven from Python over a log's graph, and the marginals.
 
 GTSAM's stock optimizers call a ``CustomFactor`` back into Python per factor and copy the whole
-``Values`` each time; here each iteration is one numpy pass to linearise, one GTSAM multifrontal
-solve of the damped linear system, and one numpy pass to evaluate the trial. The final marginals
+``Values`` each time; here each iteration is one numpy pass to linearise, one elimination of the
+damped normal equations along the pose chain (:mod:`casm_graph.graph.chain`, the step GTSAM's
+multifrontal solve gives, tests/test_marginals_chain.py), and one numpy pass to evaluate the trial. The final marginals
 come from a selected inversion of the pose chain and its dense parameter block (:func:`chain_marginals`),
 O(length) where ``gtsam.Marginals`` is slow and memory-hungry on a long chain.
 """
@@ -13,8 +14,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from casm_graph.graph.chain import arrow_blocks, arrow_inverse, pose_equations, solve_arrow
-from casm_graph.graph.table import Problem, State, retract_poses
+from casm_graph.graph.chain import RIDGES, arrow_blocks, arrow_inverse
 
 
 @dataclass
@@ -34,7 +34,6 @@ def _damping(keys_dims, lam: float) -> gtsam.GaussianFactorGraph:
     return g
 
 
-RIDGES = (1e-10, 1e-8, 1e-6)       # ridges tried, relative to the largest information, when a system is singular
 NOT_DETERMINED = "the fitted model leaves the trajectory undetermined: no marginals even with a ridge"
 
 
@@ -99,52 +98,24 @@ def chain_marginals(problem, st) -> tuple[ChainMarginals, float]:
     raise RuntimeError(NOT_DETERMINED)
 
 
-def least_squares(problem: Problem, st: State, max_iterations: int = 30, rel_tol: float = 1e-6,
-                  lam: float = 1e-6, on_iteration=None, freeze_parameters: bool = False) -> tuple[State, History]:
+def least_squares(problem, st, max_iterations: int = 30, rel_tol: float = 1e-6, lam: float = 1e-6,
+                  on_iteration=None, freeze_parameters: bool = False):
     """Minimise ``problem.cost`` from ``st``; returns the new state and the cost history.
 
-    ``freeze_parameters`` holds the velocity table and polynomial where they are (poses only).
-    A problem with ``normal_equations``/``solve_damped`` (the effect graph, whose parameters form one
-    dense block) is solved by its own pose-chain elimination, and so is a table graph's pose chain alone
-    (:func:`casm_graph.graph.chain.pose_equations`); otherwise GTSAM solves the linear graph.
+    ``problem`` is a graph with ``cost``, ``normal_equations``, ``solve_damped`` and ``retract`` (the pose
+    chain eliminated directly, then the dense parameter block: :mod:`casm_graph.graph.chain`).
+    ``freeze_parameters`` holds the parameters where they are (poses only).
     """
     hist = History()
-    keys_dims = problem.keys_dims()
-    if freeze_parameters:
-        keys_dims = keys_dims[:problem.lay.n_poses]
     cost = problem.cost(st)
     hist.cost.append(cost)
-    direct = hasattr(problem, "solve_damped")
-    chain_only = freeze_parameters and not direct and isinstance(problem, Problem)   # a table graph's poses alone
-    damping = {}                # lam moves by factors of ten: each level's damping graph is built once
-    # the problem's own elimination order when it has one (GTSAM's default COLAMD costs time quadratic
-    # in the number of poses on a long log); the same for every iteration, so computed once
-    order = (problem.ordering(freeze_parameters) if not (direct or chain_only) and hasattr(problem, "ordering")
-             else None)
     for _ in range(max_iterations):
-        if direct:
-            neq = problem.normal_equations(st, poses_only=freeze_parameters)
-        elif chain_only:
-            neq = pose_equations(problem, st)
-        else:
-            lin = problem.linearize(st, poses_only=freeze_parameters)
+        neq = problem.normal_equations(st, poses_only=freeze_parameters)
         while True:
-            if direct or chain_only:
-                try:
-                    trial = (problem.retract(st, problem.solve_damped(neq, lam)) if direct else
-                             State(retract_poses(st.poses, solve_arrow(*neq, lam)[0]), st.velocities, st.poly))
-                except np.linalg.LinAlgError:   # singular at this damping (cancellation in the chain): damp more
-                    trial = None
-            else:
-                if lam not in damping:
-                    damping[lam] = _damping(keys_dims, lam)
-                system = gtsam.GaussianFactorGraph()      # shares the factors of lin and the damping (no copy)
-                system.push_back(lin)
-                system.push_back(damping[lam])
-                try:
-                    trial = problem.retract(st, system.optimize() if order is None else system.optimize(order))
-                except RuntimeError:        # GTSAM: indeterminate at this damping; damp more, as for a failed step
-                    trial = None
+            try:
+                trial = problem.retract(st, problem.solve_damped(neq, lam))
+            except np.linalg.LinAlgError:       # singular at this damping (cancellation in the chain): damp more
+                trial = None
             new_cost = problem.cost(trial) if trial is not None else np.inf
             if np.isfinite(new_cost) and new_cost <= cost:
                 lam = max(lam / 10.0, 1e-9)

@@ -16,40 +16,25 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import solve_triangular
 
-from casm_graph.graph.table import Problem, State, anchor_rows
 
+RIDGES = (1e-10, 1e-8, 1e-6)        # ridges tried, relative to the largest information, when a system is singular
 PIVOT_TOL = 1e-12                   # a pivot below this share of its variable's own information counts as singular
 CHUNK_DOUBLES = 4_000_000           # right-hand sides of the chain solves go through in blocks of about this size
 
 
-def information_blocks(problem: Problem, st: State, rows=None) -> tuple[np.ndarray, np.ndarray]:
-    """Diagonal (K, 3, 3) and upper off-diagonal (K-1, 3, 3) blocks of J^T J over the poses (``rows``:
-    ``problem.rows(st)`` when the caller has them already)."""
-    r = problem.rows(st) if rows is None else rows
+def information_blocks(problem, st, rows=None) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal (K, 3, 3) and upper off-diagonal (K-1, 3, 3) blocks of J^T J over the poses of ``problem``
+    (a :class:`casm_graph.graph.problem.Problem`) at ``st`` (``rows``: its rows when the caller has them already)."""
+    r = problem.rows(st, parameters=False) if rows is None else rows
     K = problem.lay.n_poses
     Ha, Hb, _ = r.action_J
     D = np.zeros((K, 3, 3))
     D[:-1] += np.einsum("nki,nkj->nij", Ha, Ha)
     D[1:] += np.einsum("nki,nkj->nij", Hb, Hb)
     B = np.einsum("nki,nkj->nij", Ha, Hb)
-    np.add.at(D, problem.r_knot, np.einsum("ni,nj->nij", r.reading_J[0], r.reading_J[0]))
-    np.add.at(D, problem.b_knot, np.einsum("ni,nj->nij", r.bearing_J, r.bearing_J))
-    hk, hJ = anchor_rows(r.anchor_e)
-    np.add.at(D, hk, np.einsum("ni,nj->nij", hJ, hJ))
+    knot, Jp, _, _ = problem.sighting_rows(r, parameters=False)
+    np.add.at(D, knot, np.einsum("ni,nj->nij", Jp, Jp))
     return D, B
-
-
-def pose_equations(problem: Problem, st: State) -> tuple:
-    """:func:`normal_equations` of a table graph with its table and polynomial held (poses only), for
-    :func:`solve_arrow`: the chain eliminated directly, where GTSAM's solve goes through a Python factor per step."""
-    r = problem.rows(st)
-    Ha, Hb, _ = r.action_J
-    hk, hJ = anchor_rows(r.anchor_e)
-    knot = np.concatenate([problem.r_knot, problem.b_knot, hk])
-    Jp = np.concatenate([r.reading_J[0], r.bearing_J, hJ])
-    eo = np.concatenate([r.reading_e, r.bearing_e, r.anchor_e])
-    return normal_equations(Ha, Hb, np.zeros((len(Ha), 3, 0)), r.action_e, knot, Jp, np.zeros((len(knot), 0)), eo,
-                            np.zeros(0), np.zeros(0), poses_only=True)
 
 
 @njit(cache=True)
@@ -396,10 +381,16 @@ def arrow_inverse(blocks: dict, ridge: float = 0.0) -> tuple[np.ndarray, np.ndar
     return cov, M @ M.T
 
 
-def arrow_solver(A: sp.spmatrix, n_poses: int) -> ArrowSolve | None:
-    """:class:`ArrowSolve` of the whitened Jacobian ``A`` (poses first), or None when A^T A is singular or not
-    a chain (the caller's sparse LU then answers)."""
+def arrow_solver(A: sp.spmatrix, n_poses: int, ridges=(0.0,)) -> ArrowSolve | None:
+    """:class:`ArrowSolve` of the whitened Jacobian ``A`` (poses first) at the first of ``ridges`` (relative to
+    the largest information) that works, or None when A^T A stays singular or is not a chain."""
     try:
-        return ArrowSolve(arrow_blocks(A, n_poses))
-    except (np.linalg.LinAlgError, ValueError):
+        blocks = arrow_blocks(A, n_poses)
+    except ValueError:
         return None
+    for rel in ridges:
+        try:
+            return ArrowSolve(blocks, rel * blocks["top"])
+        except np.linalg.LinAlgError:
+            continue
+    return None

@@ -29,9 +29,9 @@ class _Permuted:
 def information_lu(A: sp.csr_matrix, order: np.ndarray | None = None):
     """Sparse LU of the information matrix A^T A of the whitened Jacobian ``A``.
 
-    ``order``: a fill-reducing order of A's columns known to the caller (the graph's pose chain,
-    :func:`casm_graph.graph.table.elimination_order`); SuperLU's minimum-degree ordering otherwise, which takes
-    time quadratic in the number of poses on a long log.
+    ``order``: a fill-reducing order of A's columns known to the caller (the poses in time order, then the
+    parameters); SuperLU's minimum-degree ordering otherwise, which takes time quadratic in the number of
+    poses on a long log.
     """
     H = (A.T @ A).tocsc()
     if order is not None:

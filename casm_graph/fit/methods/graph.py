@@ -28,9 +28,9 @@ from casm_graph.fit.residuals import observation
 from casm_graph.fit.sensor_degree import better_curve, choose_curve, suspect
 from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
-from casm_graph.graph import noise
-from casm_graph.graph.chain import arrow_solver
 from casm_graph.graph import table as G
+from casm_graph.graph.augmented import estimate_noise
+from casm_graph.graph.problem import Problem, state
 from casm_graph.io.log import Log
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
@@ -63,23 +63,6 @@ class GraphOptions:
         return {**asdict(self), "realias_after": list(self.realias_after)}
 
 
-def estimate_noise(problem: G.Problem, st: G.State, model: Model, seed: int = 0, relax: float = 1.0) -> Model:
-    """``model`` with every noise level re-estimated at the current optimum (see :mod:`noise`).
-
-    ``relax`` > 1 over-relaxes the fixed-point step (in log sigma), which otherwise creeps down
-    slowly from a loose start because the trajectory follows whatever freedom it is given. The hat
-    traces' solves use the pose chain's block elimination (O(length) memory; the sparse LU if singular).
-    """
-    A, e, groups = problem.jacobian(st)
-    traces = noise.hat_traces(A, groups, seed=seed, lu=arrow_solver(A, problem.lay.n_poses),
-                              order=problem.column_order())
-    new = {k: v ** relax for k, v in noise.group_scales(e, groups, traces, counts=problem.counts,
-                                                         huber=("reading", "bearing")).items()}
-    m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
-    return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
-                       bearing_sigma=model.bearing_sigma * new["bearing"])
-
-
 def fill_in(log: Log, model: Model, lay: G.Layout, knot_poses: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses: each coarse segment dead-reckoned step by step, its closure error spread linearly."""
     return G.fill_between(lay.knots, knot_poses, model.velocity_of(log.action) * log.dt[:, None])
@@ -105,14 +88,14 @@ def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: 
 
 
 def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress, weight=None):
-    problem = G.Problem(log, lay, model, weight, anchor=G.heading_anchor(log, poses))
+    problem = Problem(log, model, lay=lay, weight=weight, anchor=G.heading_anchor(log, poses))
 
     def tick(c):
         cost.append(c)
         stages.append(label)
         progress.step(0, cost=c)
 
-    st, h = least_squares(problem, G.state(poses, model), max_iterations=iterations, on_iteration=tick)
+    st, h = least_squares(problem, state(poses, model), max_iterations=iterations, on_iteration=tick)
     model = model.with_(velocities=st.velocities, reading_poly=st.poly)
     return problem, st, model, h
 
@@ -167,7 +150,7 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
                                           "coarse", progress, weight)
         iterations += h.iterations
         poses = st.poses
-        model = estimate_noise(problem, st, model, seed=seed + r, relax=o.coarse_relax)
+        model = estimate_noise(problem, st, model, seed=seed + r, relax=o.coarse_relax)[0]
         if r in o.realias_after and bearings:    # ranges only: the start's links already chose among the aliases
             model, poses, changed = realias(log, lay, model, poses)
             realiased.extend(changed)
@@ -197,7 +180,7 @@ def sighting_log_likelihood(log: Log, fit: Fit) -> float:
     """:func:`log_likelihood` of ``fit`` at its poses and noise levels on every sighting of ``log`` (the pruned
     ones too, through Huber's loss): fits that pruned different sightings scored on the same data."""
     lay = G.layout(log, fit.model, stride=1)
-    return log_likelihood(G.Problem(log, lay, fit.model).cost(G.state(fit.poses, fit.model)), lay, log, fit.model)
+    return log_likelihood(Problem(log, fit.model, lay=lay).cost(state(fit.poses, fit.model)), lay, log, fit.model)
 
 
 def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool, mixture: bool,
@@ -225,7 +208,7 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
             iterations += h.iterations
             poses = st.poses
             if r < o.full_rounds - 1:
-                model = estimate_noise(problem, st, model, seed=seed + 100 + r)
+                model = estimate_noise(problem, st, model, seed=seed + 100 + r)[0]
             progress.step(1)
         ok = ~np.isnan(log.obs_reading)         # the readings' distances, kept for distance_range below
         d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[ok]

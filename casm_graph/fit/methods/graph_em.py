@@ -23,6 +23,7 @@ from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain
 from casm_graph.graph import table as G
+from casm_graph.graph.problem import Problem, State, state
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
 
@@ -115,9 +116,9 @@ def m_step(log: Log, model: Model, poses, W, X) -> Model:
     return new.with_(reading_poly=poly, reading_sigma=float(s_r), bearing_sigma=float(s_b), motion_noise=motion)
 
 
-def laplace_log_likelihood(problem: G.Problem, st: G.State, logdet: float) -> float:
+def laplace_log_likelihood(problem: Problem, st: State, logdet: float) -> float:
     """log p(O | model) with the poses integrated out around their mode (flat prior on the first pose)."""
-    r = problem.rows(st)
+    r = problem.rows(st, jacobians=False)
     cost = 0.5 * float(np.sum(r.action_e ** 2) + np.sum(r.reading_e ** 2) + np.sum(r.bearing_e ** 2))
     n = r.action_e.size + r.reading_e.size + r.bearing_e.size
     log_sig = (np.sum(np.log(problem.motion_sigma)) + r.reading_e.size * np.log(problem.reading_sigma)
@@ -157,8 +158,8 @@ def em_map(log: Log, model: Model, poses: np.ndarray):
     Returns log p(O | model), the updated model, the smoothed poses and their marginals.
     """
     lay, seen = step_graph(log, model)
-    problem = G.Problem(log, lay, seen)
-    st, _ = least_squares(problem, G.state(poses, seen), max_iterations=10, freeze_parameters=True)
+    problem = Problem(log, seen, lay=lay)
+    st, _ = least_squares(problem, state(poses, seen), max_iterations=10, freeze_parameters=True)
     D, B = chain.information_blocks(problem, st)
     cov, cross, logdet = chain.select_inverse(D, B)
     ll = laplace_log_likelihood(problem, st, logdet)
