@@ -17,7 +17,7 @@ def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray):
     k = np.broadcast_to(np.asarray(k, float), v.shape[:1])
     dt = np.broadcast_to(np.asarray(dt, float), v.shape[:1])
     phi = v[:, 2] * dt
-    kmax = int(k.max())
+    kmax = int(k.max(initial=0))
     j = np.arange(kmax)
     mask = j[None, :] < k[:, None]
     ang = j[None, :] * phi[:, None]

@@ -115,6 +115,16 @@ class Problem:
         self.r_knot, self.b_knot = self.obs_knot[self.r_idx], self.obs_knot[self.b_idx]
         self.r_lm, self.b_lm = self.obs_lmxy[self.r_idx], self.obs_lmxy[self.b_idx]
         self.s_idx = np.union1d(self.r_idx, self.b_idx)      # every sighting in the graph: its pose keeps off the landmark
+        # a coarse layout's sighting lies some steps from its knot: the knot's pose is carried there by the
+        # model's velocity of the action between (one action per segment: knots at every change), held for the
+        # problem's life like the noise levels, so that sightings inform the table only through the poses
+        shift = log.obs_step - lay.knots[lay.obs_knot]
+        self.obs_shift = shift if np.any(shift) else None
+        if self.obs_shift is not None:
+            seg = np.clip(np.where(shift >= 0, lay.obs_knot, lay.obs_knot - 1), 0, lay.n_poses - 2)
+            sign = np.where(shift < 0, -1.0, 1.0)
+            v = np.asarray(model.velocities, float)[lay.seg_action[seg]] * sign[:, None]
+            self.obs_carry = factors.action.displacement(v, np.abs(shift), lay.seg_dt[seg])[0]
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
         self.reading_span = reading_span(log.obs_reading)
         self.r_scale = np.ones(n_obs)
@@ -194,24 +204,46 @@ class Problem:
                 Ht[:, :, 3 * self.A + self.D:] = d_theta * w[:, :, None]
         return ae, [Ha * w[:, :, None], Hb * w[:, :, None], Ht]
 
+    def sighting_poses(self, st: State, idx: np.ndarray):
+        """Poses of sightings ``idx``: their knots' (a pose every step), or on a coarse layout each knot's pose
+        carried over the steps to the sighting (``obs_carry``); with the tangent derivative (n, 3, 3) of each
+        with respect to the knot's pose (None at a pose every step)."""
+        p = st.poses[self.obs_knot[idx]]
+        if self.obs_shift is None:
+            return p, None
+        d = self.obs_carry[idx]
+        c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+        out = np.column_stack([p[:, 0] + c * d[:, 0] - s * d[:, 1], p[:, 1] + s * d[:, 0] + c * d[:, 1],
+                               wrap(p[:, 2] + d[:, 2])])
+        cd, sd = np.cos(d[:, 2]), np.sin(d[:, 2])
+        back = np.zeros((len(p), 3, 3))                   # d(new tangent) / d(displacement): R(-dtheta), 1
+        back[:, 0, 0], back[:, 0, 1], back[:, 1, 0], back[:, 1, 1], back[:, 2, 2] = cd, sd, -sd, cd, 1.0
+        Jp = back.copy()
+        Jp[:, :2, 2] = np.einsum("nij,nj->ni", back[:, :2, :2], np.column_stack([-d[:, 1], d[:, 0]]))
+        return out, Jp
+
     def _sighting_errors(self, st: State, jacobians: bool, parameters: bool):
         """Raw (predicted - measured) reading and bearing errors, their pose Jacobians and parameter columns."""
-        P, n_t = st.poses, self.n_theta
+        n_t = self.n_theta
         n_r, n_b = len(self.r_idx), len(self.b_idx)
         if not self.sensor_effects:
-            er, Jr = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.log.obs_reading[self.r_idx],
-                                           self.basis)
-            eb, Jb = factors.bearing.error(P[self.b_knot], self.b_lm, self.log.obs_bearing[self.b_idx])
+            pr, Jpr = self.sighting_poses(st, self.r_idx)
+            pb, Jpb = self.sighting_poses(st, self.b_idx)
+            er, Jr = factors.reading.error(pr, st.poly[None], self.r_lm, self.log.obs_reading[self.r_idx], self.basis)
+            eb, Jb = factors.bearing.error(pb, self.b_lm, self.log.obs_bearing[self.b_idx])
+            Hr, Hb = Jr[0][:, 0], Jb[0][:, 0]
             Tr = Tb = None
             if jacobians and parameters:
                 Tr, Tb = np.zeros((n_r, n_t)), np.zeros((n_b, n_t))
                 Tr[:, 3 * self.A:3 * self.A + self.D] = Jr[1][:, 0]
-            return er[:, 0], eb[:, 0], Jr[0][:, 0], Jb[0][:, 0], Tr, Tb
+            if self.obs_shift is not None:
+                Hr, Hb = np.einsum("ni,nij->nj", Hr, Jpr), np.einsum("ni,nij->nj", Hb, Jpb)
+            return er[:, 0], eb[:, 0], Hr, Hb, Tr, Tb
         ctx = self.sensor_context(st)
         ls_eff = [s for e, s in self.sensor_effects if not e.noise_only]
         uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
         (er, Jr), (eb, Jb) = factors.effect_sighting.error(
-            self._sensor_fn(ctx), P, st.poly, st.theta, self.ls_index, ls_eff, self.obs_knot, self.r_idx,
+            self._sensor_fn(ctx), st.poses, st.poly, st.theta, self.ls_index, ls_eff, self.obs_knot, self.r_idx,
             self.b_idx, self.log.obs_reading, self.log.obs_bearing, jacobians,
             ctx["velocity"] if uses_velocity else None)
         if not jacobians:

@@ -122,6 +122,25 @@ class Coarse:
     fraction: float = 0.0          # false-detection share (the mixture's, when fitted)
 
 
+def realias_if_better(log: Log, lay: G.Layout, model: Model, poses: np.ndarray, iterations: int,
+                      weight: np.ndarray | None) -> tuple[Model, np.ndarray, list[int]]:
+    """:func:`casm_graph.fit.turns.realias`, kept only when the graph agrees: the trajectory with the picked aliases
+    and the one without, each settled by ``iterations`` LM steps under the same noise levels, the lower cost wins
+    (the aliases are scored on each run's own dead-reckoned sightings, which a short log can fool: a one-minute
+    Aibo log took a wrong alias and ended 0.68 m off)."""
+    new_model, new_poses, changed = realias(log, lay, model, poses)
+    if not changed:
+        return model, poses, []
+
+    def settle(m, p):
+        problem = Problem(log, m, lay=lay, weight=weight, anchor=G.heading_anchor(log, p))
+        st, _ = least_squares(problem, state(p, m), max_iterations=iterations)
+        return problem.cost(st), m.with_(velocities=st.velocities, reading_poly=st.poly), st.poses
+
+    kept, picked = settle(model, poses), settle(new_model, new_poses)
+    return (picked[1], picked[2], changed) if picked[0] < kept[0] else (kept[1], kept[2], [])
+
+
 def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                  mixture: bool = False, options: GraphOptions | None = None) -> Coarse:
     """Stages 1-3 of the module docstring: global initialisation, then the coarse graph in rounds
@@ -152,7 +171,7 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
         poses = st.poses
         model = estimate_noise(problem, st, model, seed=seed + r, relax=o.coarse_relax)[0]
         if r in o.realias_after and bearings:    # ranges only: the start's links already chose among the aliases
-            model, poses, changed = realias(log, lay, model, poses)
+            model, poses, changed = realias_if_better(log, lay, model, poses, o.coarse_iterations, weight)
             realiased.extend(changed)
         progress.step(1)
     return Coarse(model, fill_in(log, model, lay, poses), cost, stages, iterations, realiased, init, fraction)
