@@ -513,8 +513,9 @@ def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, pos
     """
     A, e, groups = problem.jacobian(st, poses_only=poses_only)
     regional = problem.seg_region is not None
-    lu = noise.information_lu(A, np.arange(A.shape[1]))   # poses in time order, parameters last: little fill,
-                                                          # where minimum degree costs time quadratic in the poses
+    lu = noise.information_solver(A, problem.lay.n_poses)   # the one solver of every graph's noise step
+    if lu is None:
+        raise LogError(augmented.UNDETERMINED)
     traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
     # sightings beyond the gate are already out of the problem (``gate``); the Huber-weighted sums are taken as they
     # are (the table graph's gate and efficiency correction moved MRCLAM robot 1's fit: see BENCHMARKS, bad data)

@@ -121,19 +121,12 @@ def estimate_noise(problem, st, model: Model, seed: int = 0, relax: float = 1.0)
     action-table graph.
 
     ``relax`` > 1 over-relaxes the fixed-point step (in log sigma), which otherwise creeps down slowly from
-    a loose start because the trajectory follows whatever freedom it is given. The hat traces' solves use
-    the pose chain's block elimination (O(length) memory; SuperLU's minimum-degree order takes 12x the time
-    for a four times longer log); a singular chain falls back to the sparse LU, and a system singular to both
-    (a landmark hundreds of kilometres off) to the chain with a tiny ridge (``chain.RIDGES``).
+    a loose start because the trajectory follows whatever freedom it is given. The hat traces' solves are
+    :func:`casm_graph.graph.noise.information_solver`'s; a log they cannot answer (a landmark hundreds of
+    kilometres off) ends in one line.
     """
     A, e, groups = problem.jacobian(st)
-    K = problem.lay.n_poses
-    lu = chain.arrow_solver(A, K)
-    if lu is None:
-        try:
-            lu = noisemod.information_lu(A, problem.column_order())
-        except RuntimeError:
-            lu = chain.arrow_solver(A, K, chain.RIDGES)
+    lu = noisemod.information_solver(A, problem.lay.n_poses)
     if lu is None:
         raise LogError(UNDETERMINED)
     traces = noisemod.hat_traces(A, groups, seed=seed, lu=lu)

@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from casm_graph.graph import robust
+from casm_graph.graph import chain, robust
 
 
 class _Permuted:
@@ -45,6 +45,20 @@ def information_lu(A: sp.csr_matrix, order: np.ndarray | None = None):
         return splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
         return splu(H, permc_spec="MMD_AT_PLUS_A")
+
+
+def information_solver(A: sp.csr_matrix, n_poses: int):
+    """Something whose ``solve`` answers (A^T A)^-1 b for the whitened Jacobian ``A`` of a log's graph (poses
+    first, then the parameters): the pose chain's block elimination (O(length) memory), the sparse LU in that
+    order when the chain is singular, the chain with a tiny ridge (``chain.RIDGES``) when both are; None when
+    nothing works. The one solver of every graph's noise step, table or command map."""
+    solver = chain.arrow_solver(A, n_poses)
+    if solver is not None:
+        return solver
+    try:
+        return information_lu(A, np.arange(A.shape[1]))
+    except RuntimeError:
+        return chain.arrow_solver(A, n_poses, chain.RIDGES)
 
 
 def leverages(A: sp.csr_matrix, rows: np.ndarray, lu=None) -> np.ndarray:
