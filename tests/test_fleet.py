@@ -16,7 +16,6 @@ import pytest
 
 from casm_graph import cli
 from casm_graph.analysis import drift
-from casm_graph.pipeline import fleet
 from casm_graph.pipeline.fleet import DaskPool, calibrate_fleet, client_for, find_bundles, robot_and_time
 from casm_graph.sim.fleet import simulate_fleet
 
@@ -133,9 +132,9 @@ def test_fleet_on_a_dask_scheduler_matches_standalone_calibrate(tmp_path, four):
         assert sorted(p.name for p in (out / r["path"]).iterdir()) == ["model.json", "report.html", "trajectory.csv"]
 
 
-def test_unreachable_scheduler_is_one_line(tmp_path, four, capsys, monkeypatch):
-    monkeypatch.setattr(fleet, "CONNECT_TIMEOUT", "2s")
-    assert cli.main(["fleet", four, "--out", tmp_path / "o", "--scheduler", "tcp://127.0.0.1:9", "--quiet"]) == 2
+def test_unreachable_scheduler_is_one_line(tmp_path, four, capsys):
+    assert cli.main(["fleet", four, "--out", tmp_path / "o", "--scheduler", "tcp://127.0.0.1:9", "--connect-timeout",
+                     "2", "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("casm-graph: error: --scheduler tcp://127.0.0.1:9: cannot connect") and "\n" not in err
 

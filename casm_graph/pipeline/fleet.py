@@ -65,7 +65,7 @@ RUN_FILES = ("model.json", "trajectory.csv", "report.html")
 MARKER = ".casm-fleet"                 # in OUT: this directory holds a fleet run (a second run may continue it)
 SCHEMA = "casm-graph/fleet/1"
 DEFAULT_WORKERS = 2
-CONNECT_TIMEOUT = "20s"                # how long to try reaching --scheduler
+CONNECT_TIMEOUT = 20.0                 # s: how long to try reaching --scheduler, by default
 BASE_COLUMNS = ("path", "robot", "time", "status", "error", "kind", "method", "steps", "minutes", "sightings",
                 "actions", "mean_abs_vx", "mean_abs_vy", "mean_abs_w", "reading_sigma", "bearing_sigma",
                 "motion_noise_x", "motion_noise_y", "motion_noise_theta")
@@ -121,10 +121,11 @@ def robot_and_time(bundle, root) -> tuple[str | None, str | None]:
 # --------------------------------------------------------------------------- Dask
 
 @contextmanager
-def client_for(scheduler: str | None = None, workers: int | None = None) -> Iterator:
+def client_for(scheduler: str | None = None, workers: int | None = None,
+               connect_timeout: float = CONNECT_TIMEOUT) -> Iterator:
     """A ``distributed.Client``: a LocalCluster of ``workers`` (default 2) single-threaded processes when
-    ``scheduler`` is None, else the scheduler at that address (``tcp://host:port``) or scheduler file;
-    closed (with the local cluster) on the way out."""
+    ``scheduler`` is None, else the scheduler at that address (``tcp://host:port``) or scheduler file, tried
+    for ``connect_timeout`` seconds; closed (with the local cluster) on the way out."""
     if scheduler is None:
         n = DEFAULT_WORKERS if workers is None else int(workers)
         if n < 1:
@@ -139,9 +140,9 @@ def client_for(scheduler: str | None = None, workers: int | None = None) -> Iter
         return
     try:
         if Path(scheduler).is_file():
-            client = Client(scheduler_file=str(scheduler), timeout=CONNECT_TIMEOUT)
+            client = Client(scheduler_file=str(scheduler), timeout=f"{connect_timeout}s")
         else:
-            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+            client = Client(scheduler, timeout=f"{connect_timeout}s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise LogError(f"--scheduler {scheduler}: cannot connect ({_one_line(exc)})") from None
     try:
@@ -360,7 +361,7 @@ def csv_text(rows: list[dict]) -> str:
 
 def calibrate_fleet(root, out, scheduler: str | None = None, method: str = "graph", effects=(), force: bool = False,
                     workers: int | None = None, progress: bool = True, seed: int = 0,
-                    command: str | None = None) -> FleetResult:
+                    command: str | None = None, connect_timeout: float = CONNECT_TIMEOUT) -> FleetResult:
     """Calibrate every bundle under ``root`` into ``out`` on Dask; rows, drift, fleet.csv/json, report.html.
 
     Bad input (no such directory, no bundles, an unusable ``out``, an unknown effect, an unreachable
@@ -404,7 +405,7 @@ def calibrate_fleet(root, out, scheduler: str | None = None, method: str = "grap
 
     label = scheduler if scheduler is not None else "local"
     if todo:
-        with client_for(scheduler, workers) as client:
+        with client_for(scheduler, workers, connect_timeout) as client:
             label = scheduler if scheduler is not None else f"local cluster, {len(client.scheduler_info()['workers'])} workers"
             futures = {}
             for head, b, run, replace in todo:
@@ -434,7 +435,7 @@ def calibrate_fleet(root, out, scheduler: str | None = None, method: str = "grap
             sessions.append(driftmod.Session(robot=r["robot"], time=r["time"], path=r["path"], model=model))
     drift = driftmod.analyse(sessions)
     options = {"root": str(root_p), "method": method, "effects": list(effects), "seed": seed, "force": force,
-               "scheduler": scheduler, "workers": workers, "command": command}
+               "scheduler": scheduler, "workers": workers, "connect_timeout": connect_timeout, "command": command}
     result = FleetResult(out=out_p, rows=rows, drift=drift, seconds=round(time.perf_counter() - t0, 3),
                          scheduler=label, options=options)
     _replace_file(out_p / "fleet.csv", csv_text(rows))
@@ -449,7 +450,7 @@ def _fleet(args) -> int:
     argv = getattr(args, "argv", None)
     result = calibrate_fleet(args.dir, args.out, scheduler=args.scheduler, method=args.method,
                              effects=tuple(args.effect), force=args.force, workers=args.workers,
-                             progress=not args.quiet,
+                             progress=not args.quiet, connect_timeout=args.connect_timeout,
                              command=shlex.join(["casm-graph", *argv]) if argv is not None else None)
     c = result.counts
     print(f"fleet: {len(result.rows)} bundles under {args.dir}: {c['ok']} calibrated, {c['skipped']} skipped "
@@ -488,6 +489,8 @@ def add_commands(sub) -> None:
     f.add_argument("--effect", action="append", default=[], metavar="NAME")
     f.add_argument("--workers", type=int, default=None,
                    help=f"processes of the local cluster (default {DEFAULT_WORKERS}; ignored with --scheduler)")
+    f.add_argument("--connect-timeout", type=float, default=CONNECT_TIMEOUT, metavar="SECONDS",
+                   help=f"how long to try reaching --scheduler (default {CONNECT_TIMEOUT:g})")
     f.add_argument("--force", action="store_true", help="recalibrate bundles whose run is complete; write into a "
                                                         "non-empty --out")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
