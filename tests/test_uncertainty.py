@@ -12,7 +12,7 @@ import pytest
 from scipy.sparse.linalg import splu
 
 from casm_graph.analysis import marginal_likelihood as U
-from casm_graph.analysis.posterior import parse_prior
+from casm_graph.analysis.posterior import SamplerOptions, parse_prior
 from casm_graph.cli import main
 from casm_graph.fit import ekfs
 from casm_graph.fit.methods import METHODS
@@ -185,6 +185,7 @@ def test_cli_writes_posterior_report_and_model(bundle, capsys):
     assert {"walkers", "steps", "burn_in", "acceptance_fraction", "autocorr_time"} <= set(s)
     assert set(s["autocorr_time"]) == set(names) and all(np.isfinite(list(s["autocorr_time"].values())))
     assert s["walkers"] == 12 and s["steps"] == 120 and s["too_short"] and "too short" in err   # < 50 tau: warned
+    assert s["options"] == {**SamplerOptions().to_json(), "walkers": 12, "max_steps": 120}    # what the run used
     m = json.loads((out / "model.json").read_text())
     assert all(v is not None for row in m["action_model"]["std"].values() for v in row)
     band = m["sensor_model"]["reading_band"]
@@ -225,7 +226,8 @@ def test_coverage_of_credible_intervals():
     for seed in seeds:
         log, truth = simulate(SimConfig(minutes=8.0 if FULL else 2.0, seed=seed))
         fit = METHODS["graph"](log, paper_start(log), seed=seed, marginals=False)
-        unc = compute(log, fit.model, fit.poses, seed=seed, truth=truth, max_steps=5000 if FULL else 800)
+        unc = compute(log, fit.model, fit.poses, seed=seed, truth=truth,
+                      options=SamplerOptions(max_steps=5000 if FULL else 800))
         assert np.all(np.isfinite(unc.chain.tau)) and np.max(unc.chain.tau) < unc.chain.steps / 20
         for n, t in true_values(unc).items():
             lo, hi = unc.intervals[n]["ci90"]

@@ -18,6 +18,7 @@ from casm_graph.cli import main
 from casm_graph.fit import continuous as CT
 from casm_graph.models.command_model import for_commands
 from casm_graph.models.model import Model
+from casm_graph.analysis.posterior import SamplerOptions
 from casm_graph.pipeline.uncertainty import compute
 
 TRUE_RANGE_SIGMA, TRUE_BEARING_SIGMA = 0.05, 0.02      # the floor simulator's defaults
@@ -108,7 +109,8 @@ def test_posterior_covers_the_true_sensor_sigmas(floor):
     command map and polynomial get Laplace std, and the map's band contains the truth (velocity = command)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)      # 1200 steps may fall short of 50 tau: warned, not wrong
-        unc = compute(floor.log, floor.fit.model, floor.fit.poses, truth=floor.truth, max_steps=1200, seed=2)
+        unc = compute(floor.log, floor.fit.model, floor.fit.poses, truth=floor.truth,
+                      options=SamplerOptions(max_steps=1200), seed=2)
     iv = unc.intervals
     assert iv["reading_sigma"]["ci90"][0] <= TRUE_RANGE_SIGMA <= iv["reading_sigma"]["ci90"][1], iv
     assert iv["bearing_sigma"]["ci90"][0] <= TRUE_BEARING_SIGMA <= iv["bearing_sigma"]["ci90"][1], iv

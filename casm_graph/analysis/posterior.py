@@ -20,7 +20,7 @@ continuous commands): the sampler sees only its noise levels, so a sensor channe
 measure has no sigma here and no prior.
 
 Run length follows emcee's integrated autocorrelation time tau: chunks of steps until the
-chain is at least ``TAU_FACTOR`` tau long with tau settled, burn-in is a few tau, samples are
+chain is at least ``SamplerOptions.tau_factor`` tau long with tau settled, burn-in is a few tau, samples are
 thinned to about tau/2. A chain stopped by ``max_steps`` first is flagged too short (warning).
 """
 from __future__ import annotations
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import emcee
 import numpy as np
@@ -37,10 +37,24 @@ from scipy.optimize import minimize
 from casm_graph.analysis.marginal_likelihood import NoiseLikelihood
 from casm_graph.io.log import LogError
 
-TAU_FACTOR = 50            # emcee's advice: a chain of at least 50 tau
-CHECK_EVERY = 100
-BURN_TAUS = 3
-TARGET_SAMPLES = 500       # independent samples wanted: 25 beyond each end of a 90 % interval (coverage +-1.5 %)
+
+
+@dataclass(frozen=True)
+class SamplerOptions:
+    """How long emcee runs, what it keeps, and how many of its draws the Laplace marginals average over;
+    recorded in posterior.json ``sampler.options``."""
+
+    walkers: int | None = None     # None: max(2 d + 2, 12) for d noise levels
+    max_steps: int = 5000
+    min_steps: int = 300
+    tau_factor: float = 50.0       # emcee's advice: a chain of at least 50 tau
+    check_every: int = 100         # steps between autocorrelation checks
+    burn_taus: float = 3.0         # burn-in, in tau
+    target_samples: int = 500      # independent samples wanted: 25 beyond each end of a 90 % interval (coverage +-1.5 %)
+    draws: int = 64                # posterior noise draws the table's and polynomial's Laplace marginals are averaged over
+
+    def to_json(self) -> dict:
+        return asdict(self)
 
 
 @dataclass
@@ -186,11 +200,13 @@ class Chain:
     notes: list = field(default_factory=list)
 
 
-def run(ml: NoiseLikelihood, priors: dict[str, Prior], walkers: int | None = None, max_steps: int = 5000,
-        min_steps: int = 300, seed: int = 0, tau_factor: float = TAU_FACTOR, progress=None, pool=None) -> Chain:
+def run(ml: NoiseLikelihood, priors: dict[str, Prior], options: SamplerOptions | None = None, seed: int = 0,
+        progress=None, pool=None) -> Chain:
     """Sample the noise levels; the run length is set by the autocorrelation time (module docstring).
 
     ``pool``: anything with ``map`` (e.g. a Dask cluster's pool) that evaluates the walkers in parallel."""
+    o = options or SamplerOptions()
+    walkers, max_steps = o.walkers, o.max_steps
     post = LogPosterior(ml, priors)
     u0 = ml.coords(ml.x_map)
     for i, (pr, lc) in enumerate(zip(post.priors, post.log_coord)):
@@ -225,24 +241,24 @@ def run(ml: NoiseLikelihood, priors: dict[str, Prior], walkers: int | None = Non
     state, steps, tau_old = p0, 0, None
     too_short = True
     while steps < max_steps:
-        n = min(CHECK_EVERY, max_steps - steps)
+        n = min(o.check_every, max_steps - steps)
         state = sampler.run_mcmc(state, n, progress=False)
         steps += n
         if progress is not None:
             progress.step(n)
-        if steps < min_steps:
+        if steps < o.min_steps:
             continue
         tau = sampler.get_autocorr_time(tol=0, quiet=True)
         if not np.all(np.isfinite(tau)):
             continue
         tmax = float(np.max(tau))
         settled = tau_old is not None and np.all(np.abs(tau_old - tau) < 0.05 * tau)
-        enough = walkers * (steps - BURN_TAUS * tmax) / tmax >= TARGET_SAMPLES
+        enough = walkers * (steps - o.burn_taus * tmax) / tmax >= o.target_samples
         tau_old = tau
-        if steps >= tau_factor * tmax and settled and enough:
+        if steps >= o.tau_factor * tmax and settled and enough:
             too_short = False
             break
-    burn = int(math.ceil(BURN_TAUS * np.max(tau_old))) if tau_old is not None else steps // 2
+    burn = int(math.ceil(o.burn_taus * np.max(tau_old))) if tau_old is not None else steps // 2
     burn = min(burn, steps // 2)
     tau = sampler.get_autocorr_time(discard=burn, tol=0, quiet=True)
     notes = []

@@ -11,7 +11,7 @@ either sensor channel or both) the command-map graph's (:mod:`casm_graph.analysi
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +37,6 @@ from casm_graph.pipeline.diagnose import _trajectory_csv, check_compatible
 from casm_graph.report import uncertainty as uncertainty_report
 
 SCHEMA = "casm-graph/posterior/1"
-DRAWS = 64                 # posterior noise draws the table's and polynomial's Laplace marginals are averaged over
 
 
 @dataclass
@@ -53,7 +52,7 @@ class Uncertainty:
     cov_theta: np.ndarray        # table (or command map), polynomial and effect parameters, in the likelihood's order
     truth: dict | None
     seconds: float
-    draws: int = DRAWS
+    options: P.SamplerOptions = field(default_factory=P.SamplerOptions)
 
     def summary(self) -> str:
         """Each sampled noise level's median and 90 % interval, and the sampler's figures."""
@@ -79,7 +78,8 @@ class Uncertainty:
         return {
             "schema": SCHEMA,
             "parameters": {n: {**s, "prior": self.priors[n].describe()} for n, s in self.intervals.items()},
-            "sampler": {"walkers": ch.walkers, "steps": ch.steps, "burn_in": ch.burn_in,
+            "sampler": {"options": self.options.to_json(), "walkers": ch.walkers, "steps": ch.steps,
+                        "burn_in": ch.burn_in,
                         "acceptance_fraction": ch.acceptance,
                         "autocorr_time": {n: float(t) for n, t in zip(ch.names, ch.tau)},
                         "thin": ch.thin, "samples": int(len(ch.samples)), "too_short": ch.too_short,
@@ -99,7 +99,7 @@ class Uncertainty:
     def _laplace_json(self) -> dict:
         """The Laplace std of the table or command map, and of the sensor curve where the log measures readings."""
         m = self.model
-        out = {"noise_draws": self.draws}
+        out = {"noise_draws": self.options.draws}
         if m.command is None:
             out["velocity_std"] = {str(int(a)): s.tolist() for a, s in zip(m.action_ids, m.velocity_std)}
         else:
@@ -140,7 +140,7 @@ def prepare(log: Log, model: Model, poses: np.ndarray | None = None,
     return model, poses
 
 
-def mixed_marginals(ml: NoiseLikelihood, samples: np.ndarray, draws: int = DRAWS, seed: int = 0):
+def mixed_marginals(ml: NoiseLikelihood, samples: np.ndarray, draws: int = P.SamplerOptions.draws, seed: int = 0):
     """Mean shift from the MAP and covariance of the integrated-out parameters, noise integrated out.
 
     The Laplace posterior of the parameters given the noise, N(MAP + shift(lambda), S(lambda)^-1),
@@ -205,9 +205,9 @@ def command_model(model: Model, ml: ContinuousMarginalLikelihood, x_med: np.ndar
                                            "polynomial: Laplace marginals averaged over the noise posterior"})
 
 
-def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (), walkers: int | None = None,
-            max_steps: int = 5000, seed: int = 0, truth: dict | None = None, progress=None,
-            draws: int = DRAWS, pool=None) -> Uncertainty:
+def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (),
+            options: P.SamplerOptions | None = None, seed: int = 0, truth: dict | None = None, progress=None,
+            pool=None) -> Uncertainty:
     """Sample the noise levels of ``model`` on ``log`` and the Laplace marginals at their posterior median
     (``pool``: anything with ``map``, e.g. a Dask cluster's, to evaluate emcee's walkers on).
 
@@ -221,20 +221,23 @@ def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] =
     with threadpool_limits(1):
         ml = likelihood(log, model, poses) if model.command is None else continuous_likelihood(log, model, poses)
         pri = P.priors_for(ml, overrides)
-        ch = P.run(ml, pri, walkers=walkers, max_steps=max_steps, seed=seed, progress=progress, pool=pool)
+        o = options or P.SamplerOptions()
+        ch = P.run(ml, pri, o, seed=seed, progress=progress, pool=pool)
         summ = P.summary(ch)
         if progress is not None:
             progress.stage("marginals", None)
         x_med = np.array([summ[n]["median"] for n in ml.names])
-        shift, cov = mixed_marginals(ml, ch.samples, draws=draws, seed=seed)
+        shift, cov = mixed_marginals(ml, ch.samples, draws=o.draws, seed=seed)
     new = (table_model(model, ml, x_med, shift, cov) if model.command is None
            else command_model(model, ml, x_med, shift, cov))
-    return Uncertainty(log, new, ml, ch, summ, pri, cov, truth, time.perf_counter() - t0, draws)
+    return Uncertainty(log, new, ml, ch, summ, pri, cov, truth, time.perf_counter() - t0, o)
 
 
 def uncertainty(log: Log, calibration: Calibration | Model, priors: tuple[str, ...] = (), walkers: int | None = None,
-                max_steps: int = 5000, seed: int = 0, progress=None, pool=None) -> Uncertainty:
-    """The posterior of the noise levels (emcee) and the Laplace marginals of the rest; in memory (``save`` writes UNC)."""
+                max_steps: int | None = None, seed: int = 0, progress=None, pool=None,
+                options: P.SamplerOptions | None = None) -> Uncertainty:
+    """The posterior of the noise levels (emcee) and the Laplace marginals of the rest; in memory (``save`` writes UNC).
+    ``walkers`` and ``max_steps``, when given, replace those of ``options``."""
     check_identifiable(log)
     for s in priors:
         P.parse_prior(s)
@@ -246,11 +249,18 @@ def uncertainty(log: Log, calibration: Calibration | Model, priors: tuple[str, .
     else:
         model, poses = calibration, None
     model, poses = prepare(log, model, poses)
-    return compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(log.source), progress,
-                   pool=pool)
+    return compute(log, model, poses, priors, sampler_options(options, walkers, max_steps), seed,
+                   read_truth_model(log.source), progress, pool=pool)
 
 
-def run(log_dir, model_path, out, priors: tuple[str, ...] = (), walkers: int | None = None, max_steps: int = 5000,
+def sampler_options(options: P.SamplerOptions | None, walkers: int | None, max_steps: int | None) -> P.SamplerOptions:
+    """``options`` (the defaults when None) with ``walkers`` and ``max_steps`` put in where given."""
+    o = options or P.SamplerOptions()
+    given = {k: v for k, v in (("walkers", walkers), ("max_steps", max_steps)) if v is not None}
+    return replace(o, **given)
+
+
+def run(log_dir, model_path, out, priors: tuple[str, ...] = (), walkers: int | None = None, max_steps: int | None = None,
         seed: int = 0, progress=None, force: bool = False, pool=None) -> Uncertainty:
     """The command: check everything first (bad input writes nothing), compute, write UNC all or nothing."""
     checked_out(out, force, inputs=[log_dir, model_path])
@@ -260,8 +270,8 @@ def run(log_dir, model_path, out, priors: tuple[str, ...] = (), walkers: int | N
     model = Model.load(model_path)
     log = load(log_dir)
     model, poses = prepare(log, model, _trajectory_csv(log, model_path), model_path.name)
-    unc = compute(log, model, poses, priors, walkers, max_steps, seed, read_truth_model(log.source), progress,
-                  pool=pool)
+    unc = compute(log, model, poses, priors, sampler_options(None, walkers, max_steps), seed,
+                  read_truth_model(log.source), progress, pool=pool)
     if progress is not None:
         progress.stage("report", None)
     unc.save(out, force=force)
