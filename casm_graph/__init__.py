@@ -8,6 +8,7 @@
 """
 from casm_graph.analysis.diagnosis import DiagnoseOptions, Diagnosis
 from casm_graph.analysis.groundtruth import evaluate as against_truth
+from casm_graph.analysis.posterior import SamplerOptions
 from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit.calibration import CalibrateOptions, Calibration
 from casm_graph.fit.continuous import CommandGraphOptions
@@ -25,4 +26,5 @@ from casm_graph.sim.protocols import simulate, write_log
 
 __all__ = ["load_log", "simulate", "write_log", "calibrate", "diagnose", "uncertainty", "Effect", "register", "catalog",
            "model_error", "against_truth", "load_mrclam", "find_mrclam", "LogError", "Log", "CalibrateOptions",
-           "Calibration", "GraphOptions", "CommandGraphOptions", "DiagnoseOptions", "Diagnosis", "Uncertainty", "ProposalOptions"]
+           "Calibration", "GraphOptions", "CommandGraphOptions", "DiagnoseOptions", "Diagnosis", "Uncertainty", "ProposalOptions",
+           "SamplerOptions"]
