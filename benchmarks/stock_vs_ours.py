@@ -16,7 +16,7 @@ import numpy as np
 
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
-from casm_graph.graph.problem import Problem, state
+from casm_graph.graph.problem import Problem
 from casm_graph.models.model import paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 
@@ -37,7 +37,7 @@ def setup(steps: int, seed: int = 0):
 def ours(log, m, lay, poses, iterations):
     t = time.perf_counter()
     problem = Problem(log, m, lay=lay)
-    st, h = least_squares(problem, state(poses, m), max_iterations=iterations, rel_tol=-1.0)
+    st, h = least_squares(problem, problem.state(poses, m), max_iterations=iterations, rel_tol=-1.0)
     return time.perf_counter() - t, h.iterations, problem.cost(st)
 
 

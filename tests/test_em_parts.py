@@ -9,7 +9,7 @@ from casm_graph.fit.methods.ekfs_em import _observations
 from casm_graph.fit.methods.graph_em import expected_displacement, gaussian_moments
 from casm_graph.graph import chain
 from casm_graph.graph import table as G
-from casm_graph.graph.problem import Problem, state
+from casm_graph.graph.problem import Problem
 from casm_graph.models.model import paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 
@@ -28,7 +28,7 @@ def test_chain_marginals_equal_gtsam(true_case):
     log, m = true_case
     lay = G.layout(log, m, 1)
     problem = Problem(log, m, lay=lay)
-    st = state(log.truth[:, 1:], m)
+    st = problem.state(log.truth[:, 1:], m)
     cov, cross, logdet = chain.select_inverse(*chain.information_blocks(problem, st))
     lin = problem.linearize(st, poses_only=True)
     mg = gtsam.Marginals(lin, gtsam.VectorValues())

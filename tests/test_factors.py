@@ -6,7 +6,7 @@ from gtsam.symbol_shorthand import C, V, X
 
 import factors
 from casm_graph.graph import table as G
-from casm_graph.graph.problem import THETA, Problem, state
+from casm_graph.graph.problem import THETA, Problem
 from casm_graph.models.model import paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 
@@ -111,7 +111,7 @@ def test_numpy_problem_matches_gtsam_graph(stride):
     lay = G.layout(log, m, stride)
     poses = log.truth[lay.knots, 1:] + rng.normal(0, 0.02, (lay.n_poses, 3))
     problem = Problem(log, m, lay=lay)
-    st = state(poses, m)
+    st = problem.state(poses, m)
     graph = G.build(log, lay, m)
     vals = G.values(poses, m)
     assert problem.cost(st) == pytest.approx(graph.error(vals), rel=1e-9)
@@ -135,7 +135,7 @@ def test_coarse_graph_jacobian_matches_numerical_differentiation():
     lay = G.layout(log, m, 10)
     assert np.any(log.obs_step != lay.knots[lay.obs_knot])          # sightings between knots
     p = Problem(log, m, lay=lay, huber=False)
-    st = state(log.truth[lay.knots, 1:] + rng.normal(0, 0.02, (lay.n_poses, 3)), m)
+    st = p.state(log.truth[lay.knots, 1:] + rng.normal(0, 0.02, (lay.n_poses, 3)), m)
     A = p.jacobian(st)[0].toarray()
     K, h = lay.n_poses, 1e-6
     for col in list(rng.choice(3 * K, 15, replace=False)) + list(3 * K + np.arange(p.n_theta)):

@@ -62,12 +62,6 @@ class Rows:
     standoff: tuple = (np.zeros(0, int), np.zeros(0), np.zeros((0, 3)))  # (knot, e, pose Jacobian) of the standoff
 
 
-def state(poses: np.ndarray, model: Model) -> State:
-    """The variables of a graph without effects at ``poses`` and ``model``."""
-    return State(np.asarray(poses, float).copy(), np.asarray(model.velocities, float).copy(),
-                 np.asarray(model.reading_poly, float).copy())
-
-
 class Problem:
     """One log under fixed noise levels, with its effects; evaluated and linearised in numpy.
 
@@ -140,6 +134,8 @@ class Problem:
 
     # ------------------------------------------------------------------ state
     def state(self, poses: np.ndarray, model: Model, theta: np.ndarray | None = None) -> State:
+        """The variables at ``poses`` and ``model``'s table and curve; the effects' at ``theta`` (the problem's own
+        when None)."""
         th = self.theta_noise.copy() if theta is None else np.asarray(theta, float).copy()
         return State(np.asarray(poses, float).copy(), np.asarray(model.velocities, float).copy(),
                      np.asarray(model.reading_poly, float).copy(), th)
@@ -212,9 +208,7 @@ class Problem:
         if self.obs_shift is None:
             return p, None
         d = self.obs_carry[idx]
-        c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
-        out = np.column_stack([p[:, 0] + c * d[:, 0] - s * d[:, 1], p[:, 1] + s * d[:, 0] + c * d[:, 1],
-                               wrap(p[:, 2] + d[:, 2])])
+        out = G.retract_poses(p, d)                       # the displacement taken in the knot's body frame
         cd, sd = np.cos(d[:, 2]), np.sin(d[:, 2])
         back = np.zeros((len(p), 3, 3))                   # d(new tangent) / d(displacement): R(-dtheta), 1
         back[:, 0, 0], back[:, 0, 1], back[:, 1, 0], back[:, 1, 1], back[:, 2, 2] = cd, sd, -sd, cd, 1.0
@@ -376,11 +370,6 @@ class Problem:
 
     def keys_dims(self) -> list[tuple[int, int]]:
         return [(X(i), 3) for i in range(self.lay.n_poses)] + [(THETA, self.n_theta)]
-
-    def column_order(self) -> np.ndarray:
-        """Elimination order over :meth:`jacobian`'s columns for a sparse LU: poses in time order, then the
-        parameters (each pose's elimination touches its neighbour and the parameters: no fill beyond them)."""
-        return np.arange(3 * self.lay.n_poses + self.n_theta)
 
     def jacobian(self, st: State):
         """Whitened sparse Jacobian (rows: action x/y/theta interleaved, reading, bearing, priors, anchor), the

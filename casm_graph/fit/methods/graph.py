@@ -30,7 +30,7 @@ from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import estimate_noise
-from casm_graph.graph.problem import Problem, state
+from casm_graph.graph.problem import Problem
 from casm_graph.io.log import Log
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
@@ -95,7 +95,7 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress,
         stages.append(label)
         progress.step(0, cost=c)
 
-    st, h = least_squares(problem, state(poses, model), max_iterations=iterations, on_iteration=tick)
+    st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick)
     model = model.with_(velocities=st.velocities, reading_poly=st.poly)
     return problem, st, model, h
 
@@ -133,9 +133,8 @@ def realias_if_better(log: Log, lay: G.Layout, model: Model, poses: np.ndarray, 
         return model, poses, []
 
     def settle(m, p):
-        problem = Problem(log, m, lay=lay, weight=weight, anchor=G.heading_anchor(log, p))
-        st, _ = least_squares(problem, state(p, m), max_iterations=iterations)
-        return problem.cost(st), m.with_(velocities=st.velocities, reading_poly=st.poly), st.poses
+        _, st, settled, h = _optimise(log, lay, m, p, iterations, [], [], "realias", Progress(), weight)
+        return h.cost[-1], settled, st.poses
 
     kept, picked = settle(model, poses), settle(new_model, new_poses)
     return (picked[1], picked[2], changed) if picked[0] < kept[0] else (kept[1], kept[2], [])
@@ -199,7 +198,8 @@ def sighting_log_likelihood(log: Log, fit: Fit) -> float:
     """:func:`log_likelihood` of ``fit`` at its poses and noise levels on every sighting of ``log`` (the pruned
     ones too, through Huber's loss): fits that pruned different sightings scored on the same data."""
     lay = G.layout(log, fit.model, stride=1)
-    return log_likelihood(Problem(log, fit.model, lay=lay).cost(state(fit.poses, fit.model)), lay, log, fit.model)
+    problem = Problem(log, fit.model, lay=lay)
+    return log_likelihood(problem.cost(problem.state(fit.poses, fit.model)), lay, log, fit.model)
 
 
 def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool, mixture: bool,

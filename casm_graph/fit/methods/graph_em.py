@@ -23,7 +23,7 @@ from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain
 from casm_graph.graph import table as G
-from casm_graph.graph.problem import Problem, State, state
+from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
 
@@ -159,7 +159,7 @@ def em_map(log: Log, model: Model, poses: np.ndarray):
     """
     lay, seen = step_graph(log, model)
     problem = Problem(log, seen, lay=lay)
-    st, _ = least_squares(problem, state(poses, seen), max_iterations=10, freeze_parameters=True)
+    st, _ = least_squares(problem, problem.state(poses, seen), max_iterations=10, freeze_parameters=True)
     D, B = chain.information_blocks(problem, st)
     cov, cross, logdet = chain.select_inverse(D, B)
     ll = laplace_log_likelihood(problem, st, logdet)
