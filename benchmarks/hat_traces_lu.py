@@ -16,6 +16,7 @@ import numpy as np
 from scipy.sparse.linalg import splu
 
 from casm_graph.fit import continuous as CT
+from casm_graph.graph.problem import Problem
 from casm_graph.sim.floor import FloorConfig, simulate
 
 
@@ -36,8 +37,8 @@ def main():
     log, _ = simulate(FloorConfig(minutes=a.minutes, seed=1, dt=0.1, lens_k=-0.1, detect_prob=0.4))
     start = CT.initialise(log, CT.start_model(log))
     lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
-    problem = CT.Problem(log, lay, start.model, poses=start.poses[lay.knots])
-    A, _, groups = problem.jacobian(CT.state(start.poses[lay.knots], start.model))
+    problem = Problem(log, start.model, lay=lay, poses=start.poses[lay.knots])
+    A, _, groups = problem.jacobian(problem.state(start.poses[lay.knots], start.model))
     H = (A.T @ A).tocsc()
     rows = groups["forward"]
     U = np.asarray(A[rows].T @ np.random.default_rng(0).choice([-1.0, 1.0], size=(len(rows), 24)))

@@ -14,6 +14,7 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.fit import continuous as CT
+from casm_graph.graph.problem import Problem, State
 from casm_graph.models.effects import get
 from casm_graph.models.effects.proposal import proposal_effect
 from casm_graph.sim.floor import FloorConfig, simulate
@@ -23,13 +24,13 @@ from .conftest import FULL, patch_contrast, position_rms
 
 
 def _numerical_jacobian_check(problem, st):
-    A, e, _ = problem.jacobian(st, robust_weights=False)
+    A, e, _ = problem.jacobian(st)
     A = A.toarray()
     K = problem.lay.n_poses
     h = 1e-6
 
     def residual(s):
-        return problem.jacobian(s, robust_weights=False)[1]
+        return problem.jacobian(s)[1]
 
     def moved(P, i, j, eps):
         P = P.copy()
@@ -41,17 +42,18 @@ def _numerical_jacobian_check(problem, st):
 
     for i in (0, K // 3, K - 2):                              # body-frame tangent steps of a few poses
         for j in range(3):
-            num = (residual(CT.State(moved(st.poses, i, j, h), st.params, st.poly, st.theta))
-                   - residual(CT.State(moved(st.poses, i, j, -h), st.params, st.poly, st.theta))) / (2 * h)
+            num = (residual(State(moved(st.poses, i, j, h), st.params, st.poly, st.theta))
+                   - residual(State(moved(st.poses, i, j, -h), st.params, st.poly, st.theta))) / (2 * h)
             assert np.allclose(A[:, 3 * i + j], num, atol=2e-4 * max(1.0, np.abs(num).max())), (i, j)
-    for k in range(problem.n_m):                             # command map, then the effects' parameters
+    na, D = problem.n_action, problem.D
+    for k in [*range(na), *range(na + D, problem.n_theta)]:   # command map, then the effects' parameters
         def at(eps):
             p, th = st.params.copy(), st.theta.copy()
-            if k < problem.n_params:
+            if k < na:
                 p[k] += eps
             else:
-                th[problem.ls_index[k - problem.n_params]] += eps
-            return residual(CT.State(st.poses, p, st.poly, th))
+                th[problem.ls_index[k - na - D]] += eps
+            return residual(State(st.poses, p, st.poly, th))
         num = (at(h) - at(-h)) / (2 * h)
         assert np.allclose(A[:, 3 * K + k], num, atol=2e-4 * max(1.0, np.abs(num).max())), k
 
@@ -64,10 +66,10 @@ def test_hooked_effect_jacobians_match_numerical():
     m = CT.start_model(log).with_(reading_poly=np.array([0.02, 1.01, 0.0, -0.001]), reading_sigma=10.0)
     m = m.with_(command=CT.for_commands(log.controls, 2, 1, gain=0.9))
     lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
-    st = CT.state(log.truth[lay.knots, 1:] + 0.01, m, effects)
+    problem = Problem(log, m, effects, lay=lay, poses=log.truth[lay.knots, 1:] + 0.01, huber=False)
+    st = problem.state(log.truth[lay.knots, 1:] + 0.01, m)
     st.theta[:] = np.linspace(0.01, 0.05, len(st.theta))       # away from zero: every hook acts
-    problem = CT.Problem(log, lay, m, None, st.poses, effects)
-    assert problem.n_m == problem.n_params + len(st.theta)
+    assert problem.n_theta == problem.n_action + problem.D + len(st.theta)
     _numerical_jacobian_check(problem, st)
 
 

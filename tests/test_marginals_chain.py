@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from gtsam.symbol_shorthand import C, M, V, X
+from gtsam.symbol_shorthand import V, X
 
 import casm_graph as cg
 from casm_graph.fit import continuous as CT
@@ -78,13 +78,14 @@ def test_floor_graph_marginals_equal_gtsam():
     fit = CT.fit(log, marginals=False)
     lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
     kp = fit.poses[lay.knots]
-    problem, st = CT.Problem(log, lay, fit.model, None, kp), CT.state(kp, fit.model)
+    problem = Problem(log, fit.model, lay=lay, poses=kp)
+    st = problem.state(kp, fit.model)
     m, ridge = chain_marginals(problem, st)
     assert ridge == 0.0
     mg = gtsam.Marginals(problem.linearize(st), gtsam.VectorValues())
     ref = gtsam_poses(mg, lay.n_poses)
     np.testing.assert_allclose(m.pose_cov, ref, rtol=RTOL, atol=RTOL * np.abs(ref).max())
-    for key in (M(0), C(0)):
+    for key in (THETA,):
         np.testing.assert_allclose(m.marginalCovariance(key), mg.marginalCovariance(key), rtol=RTOL,
                                    atol=RTOL * np.abs(mg.marginalCovariance(key)).max())
     np.testing.assert_allclose(m.marginalCovariance(X(5)), ref[5])
@@ -98,9 +99,9 @@ def test_floor_graph_damped_step_equals_gtsam(hooked):
     lay = CT.layout(log, CT.DEFAULTS.coarse_knot_dt)
     m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=0.95),
                                   reading_poly=np.array([0.01, 1.0, 0.0, 0.0]))
-    st = CT.state(log.truth[lay.knots, 1:] + 0.02, m, effects)
+    problem = Problem(log, m, effects, lay=lay, poses=log.truth[lay.knots, 1:] + 0.02)
+    st = problem.state(log.truth[lay.knots, 1:] + 0.02, m)
     st.theta[:] = 0.01
-    problem = CT.Problem(log, lay, m, None, st.poses, effects)
     lam = 1e-3
     ours = problem.retract(st, problem.solve_damped(problem.normal_equations(st), lam))
     g = problem.linearize(st)

@@ -143,6 +143,7 @@ def test_regional_motion_noise_is_refused_clearly_where_it_cannot_run(short_bund
 
 def test_regional_noise_problem_weights_each_segment_by_its_region():
     from casm_graph.fit import continuous as CT
+    from casm_graph.graph.problem import Problem
     from casm_graph.models.effects.regional_motion_noise import Regions, entry, variances
     log, _ = simulate(FloorConfig(minutes=1, seed=0))
     m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=1.0))
@@ -152,11 +153,11 @@ def test_regional_noise_problem_weights_each_segment_by_its_region():
     m = m.with_(effects={"regional_motion_noise": entry(regions, k)})
     lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
     knots = log.truth[lay.knots, 1:]
-    p = CT.Problem(log, lay, m, poses=knots)
+    p = Problem(log, m, lay=lay, poses=knots)
     reg = region_of(knots[:-1, :2], (12.0, 8.0), (3, 2))
-    np.testing.assert_array_equal(p.seg_region, reg)
+    np.testing.assert_array_equal(p.action.seg_region, reg)
     r = np.array([np.sum(np.abs(log.controls[lay.seg_idx[i], 0]) * lay.seg_dt[i]) for i in range(len(reg))])
-    vr, _ = variances(k[reg], r, p.seg_turn)
+    vr, _ = variances(k[reg], r, p.action.seg_turn)
     np.testing.assert_allclose(p.motion_sigma[:, 0], np.sqrt(vr), rtol=1e-9)
     with pytest.raises(ValueError, match="knot poses"):
-        CT.Problem(log, lay, m)
+        Problem(log, m, lay=lay)

@@ -16,6 +16,7 @@ import casm_graph as cg
 from casm_graph.analysis import marginal_likelihood as U
 from casm_graph.cli import main
 from casm_graph.fit import continuous as CT
+from casm_graph.graph.problem import Problem
 from casm_graph.models.command_model import for_commands
 from casm_graph.models.model import Model
 from casm_graph.analysis.posterior import SamplerOptions
@@ -50,11 +51,11 @@ def tiny():
 def dense_laplace(ml, x) -> tuple[float, np.ndarray, np.ndarray]:
     """log p(O | x) and the parameters' shift and covariance from the graph built afresh at noise levels ``x``
     (Gaussian sightings: no Huber weights), with a dense information matrix, log det and solves."""
-    sr, sb, mot = ml._split(x)
+    sr, sb, mot, _ = ml._split(x)
     pb = ml.problem
     m = ml.model.with_(reading_sigma=sr, bearing_sigma=sb, motion_noise=mot)
-    problem = CT.Problem(pb.log, pb.lay, m, (pb.r_sel, pb.b_sel))
-    A, e, groups = problem.jacobian(ml.state, robust_weights=False)
+    problem = Problem(pb.log, m, pb.effects, lay=pb.lay, gate=(pb.r_sel, pb.b_sel), huber=False)
+    A, e, groups = problem.jacobian(ml.state)
     A = A.toarray()
     sigma = np.concatenate([problem.motion_sigma.ravel(), np.full(len(groups["reading"]), sr),
                             np.full(len(groups["bearing"]), sb)])

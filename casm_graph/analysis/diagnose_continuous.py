@@ -31,6 +31,7 @@ from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel, place
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
+from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
@@ -59,7 +60,7 @@ def command_acceleration(seg_v: np.ndarray, seg_mid: np.ndarray) -> np.ndarray:
     return out
 
 
-def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model,
+def channels(log: Log, problem: Problem, st: State, model: Model,
              command_change: float = DEFAULTS.command_change) -> dict[str, Channel]:
     """Whitened residual channels of the continuous graph with the INTERFACE covariates it has."""
     lay = problem.lay
@@ -87,7 +88,7 @@ def channels(log: Log, problem: CT.Problem, st: CT.State, model: Model,
             "turn_rate": vo[:, 2], "distance": dist, "image_angle": wrap(bearing - log.camera_pan), "bearing": bearing,
             "landmark": log.obs_landmark.astype(float)}
     r_sigma = np.full(len(ot), problem.reading_sigma)
-    r_sigma[problem.r_sel] *= problem.r_scale          # a noise effect's factor on each reading's sigma
+    r_sigma *= problem.r_scale          # a noise effect's factor on each reading's sigma
     for name, raw, sigma, sel in (("reading", res["reading"], r_sigma, problem.r_sel),
                                   ("bearing", res["bearing_residual"], np.full(len(ot), problem.bearing_sigma),
                                    problem.b_sel)):
@@ -204,9 +205,9 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     own = CT.hooked_effects(log, model, extra_effects)
     lay = CT.layout(log, graph.full_knot_dt)
     use = CT.gate(log, poses[log.obs_step], model, effects=own)
-    problem = CT.Problem(log, lay, model, use, poses[lay.knots], own)
-    st, _ = least_squares(problem, CT.state(poses[lay.knots], model, own), max_iterations=o.settle_iterations)
-    model = CT.with_state(model, st, own)
+    problem = Problem(log, model, own, lay=lay, gate=use, poses=poses[lay.knots])
+    st, _ = least_squares(problem, problem.state(poses[lay.knots], model), max_iterations=o.settle_iterations)
+    model = problem.with_state(model, st)
     full = CT.fill_in(log, model, lay.knots, st.poses)
     base = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
     chs = channels(log, problem, st, model, o.command_change)
@@ -274,7 +275,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
                      options=o)
 
 
-def open_loop_error(log: Log, problem: CT.Problem, model: Model, poses: np.ndarray) -> dict:
+def open_loop_error(log: Log, problem: Problem, model: Model, poses: np.ndarray) -> dict:
     """:func:`casm_graph.analysis.predictive.predictive` of the command map (its lag included) from ``poses``
     (T+1, 3), the sightings the gate kept."""
     def residuals(trajectory):

@@ -398,7 +398,7 @@ class NoiseLikelihood:
 
     def reading_distances(self) -> np.ndarray:
         """Distance of every reading the likelihood uses from the MAP trajectory (the report's sensor coverage)."""
-        raise NotImplementedError
+        return self.problem.predictions(self.state)["distance"][self.problem.r_sel]
 
 
 class MarginalLikelihood(NoiseLikelihood):
@@ -605,10 +605,6 @@ class MarginalLikelihood(NoiseLikelihood):
         C = np.linalg.inv(S)
         return -C @ gt, C
 
-    def reading_distances(self) -> np.ndarray:
-        """Distance of every reading from the MAP trajectory."""
-        return self.problem.predictions(self.state)["distance"][np.isfinite(self.problem.log.obs_reading)]
-
 
 # ------------------------------------------------------------------------------ set-up
 def map_state(log: Log, model: Model, poses: np.ndarray, iterations: int = 10) -> tuple[Problem, State]:
@@ -660,7 +656,7 @@ def _on_pattern(parts: list, n: int) -> tuple[np.ndarray, np.ndarray, list]:
     return total.indices, total.indptr, values
 
 
-def unit_rows(problem: CT.Problem, st: CT.State, model: Model):
+def unit_rows(problem: Problem, st: State, model: Model):
     """The continuous graph's Jacobian A, residual e and row groups at unit noise levels, no Huber weights.
 
     Motion rows are whitened by each segment's length factor only (``motion_sigma`` / the model's
@@ -669,7 +665,8 @@ def unit_rows(problem: CT.Problem, st: CT.State, model: Model):
     unit = copy.copy(problem)
     unit.motion_sigma = problem.motion_sigma / np.asarray(model.motion_noise, float)[None, :]
     unit.reading_sigma = unit.bearing_sigma = 1.0
-    return unit.jacobian(st, robust_weights=False)
+    unit.k = np.inf
+    return unit.jacobian(st)
 
 
 class ContinuousMarginalLikelihood(NoiseLikelihood):
@@ -685,7 +682,8 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
     The noise levels are the channels the log measures, each sampled as in the table graph:
     reading and bearing sigma, forward, lateral and turn motion noise per median command step.
     The profiled effects' parameters (``actuator_lag``'s time constant, ``lens_distortion``'s k) stay as
-    calibrated; hooked effects' parameters are integrated out with the command map (they are part of M(0)).
+    calibrated; hooked effects' parameters are integrated out with the command map (the parameter vector holds
+    both).
     """
 
     @property
@@ -696,7 +694,7 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
     def set_aside(self) -> int:
         return self._set_aside
 
-    def __init__(self, problem: CT.Problem, st: CT.State, model: Model):
+    def __init__(self, problem: Problem, st: State, model: Model):
         self.problem, self.state, self.model = problem, st, model
         self._set_aside = problem.set_aside(model)
         A, e, groups = unit_rows(problem, st, model)
@@ -729,7 +727,8 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
                       - 0.5 * float(np.sum(self.counts)) * LOG2PI)
 
     def _split(self, x):
-        """(reading sigma, bearing sigma, motion noise (3,)) from a vector of noise levels, the model's elsewhere."""
+        """(reading sigma, bearing sigma, motion noise (3,), effect theta) from a vector of noise levels, the model's
+        elsewhere (the noise effects' parameters are the calibration's: not sampled here)."""
         mot = np.array(self.model.motion_noise, float)
         sr, sb = float(self.model.reading_sigma), float(self.model.bearing_sigma)
         for p, v in zip(self.params, np.asarray(x, float)):
@@ -739,7 +738,7 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
                 sb = float(v)
             else:
                 mot[p.index] = v
-        return sr, sb, mot
+        return sr, sb, mot, self.state.theta.copy()
 
     def system(self, x):
         """(data log density at the MAP residuals, H as CSC, g) at noise levels ``x``."""
@@ -778,7 +777,8 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
         return float(value) if np.isfinite(value) else -np.inf
 
     def parameter_moments(self, x) -> tuple[np.ndarray, np.ndarray]:
-        """(Gauss-Newton shift, Laplace covariance) of the command map and polynomial, in that order, at ``x``."""
+        """(Gauss-Newton shift, Laplace covariance) of the parameter vector (command map, polynomial, effects) at
+        ``x``."""
         _, lu, g = self.factor(np.asarray(x, float))
         if lu is None:
             raise np.linalg.LinAlgError("the information matrix is singular at these noise levels")
@@ -786,11 +786,6 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
         E[self.par, np.arange(len(self.par))] = 1.0
         C = lu.solve(E)[self.par]
         return -lu.solve(g)[self.par], 0.5 * (C + C.T)
-
-    def reading_distances(self) -> np.ndarray:
-        """Distance of every reading the likelihood uses from the MAP knots."""
-        pb = self.problem
-        return np.hypot(*(pb.r_lm - self.state.poses[pb.r_knot, :2]).T)
 
 
 def continuous_likelihood(log: Log, model: Model, poses: np.ndarray, iterations: int = 10,
@@ -804,6 +799,6 @@ def continuous_likelihood(log: Log, model: Model, poses: np.ndarray, iterations:
     effects = CT.hooked_effects(log, model, own)
     r_use, b_use = CT.gate(log, np.asarray(poses, float)[log.obs_step], model, effects=effects)
     use = (r_use & model.has("reading"), b_use & model.has("bearing"))
-    problem = CT.Problem(log, lay, model, use, kp, effects)
-    st, _ = least_squares(problem, CT.state(kp, model, effects), max_iterations=iterations)
+    problem = Problem(log, model, effects, lay=lay, gate=use, poses=kp)
+    st, _ = least_squares(problem, problem.state(kp, model), max_iterations=iterations)
     return ContinuousMarginalLikelihood(problem, st, model)

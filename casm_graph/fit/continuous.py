@@ -1,9 +1,9 @@
 """Calibration of a log with continuous commands: poses, command-model parameters and sensor polynomial.
 
-The graph has a pose at a set of knots (every ``knot_dt`` seconds and at every step with an
-observation, so sightings attach to their own pose exactly), one vector variable holding the
-command model of :mod:`casm_graph.models.command_model`, and the sensor polynomial. Consecutive knots are
-joined by a :mod:`factors.command` factor over the command steps between them.
+The graph is the one graph problem (:class:`casm_graph.graph.problem.Problem`) with the command-map
+action part (:mod:`casm_graph.graph.actions.command_poly`): a pose at a set of knots (every ``knot_dt``
+seconds and at every step with an observation, so sightings attach to their own pose exactly), the
+command model of :mod:`casm_graph.models.command_model` and the sensor polynomial in its parameter vector.
 
 The start is global (:mod:`casm_graph.fit.windows`): the sensor hypothesis from the grid smoother of
 :func:`casm_graph.fit.locate.locate`, the command maps at the nominal velocity = command, and each
@@ -19,31 +19,25 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field, replace
 
-import gtsam
 import numpy as np
-import scipy.sparse as sp
 from scipy.optimize import minimize_scalar
-from gtsam.symbol_shorthand import C, M, X
+from gtsam.symbol_shorthand import X
 
-import factors
 from casm_graph.fit import windows as W
 from casm_graph.fit.methods.base import Fit, Progress
 from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
 from casm_graph.fit.solve import chain_marginals, least_squares
-from casm_graph.graph import augmented, chain, noise, robust
+from casm_graph.graph import augmented, robust
 from casm_graph.graph import table as G
+from casm_graph.graph.actions.command_poly import Layout, layout, sighting_means, velocity_window
+from casm_graph.graph.problem import THETA, Problem, State
 from casm_graph.io.log import Log, LogError, wrap
-from casm_graph.models.command_model import CommandModel, for_commands
+from casm_graph.models.command_model import for_commands
 from casm_graph.models.effects import of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
-from casm_graph.models.effects.false_detections import mixture_terms, reading_span
 from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
 
-PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the command scale
-POLY_PRIOR_SIGMA = 1e4
 MIN_SIGHTINGS = 10
-MIN_MOTION_SIGMA = 1e-4      # m, rad per step: below this a noise level is numerical, not physical (a robot that never
-                             # slips sideways drove the lateral one to 1e-13, and the information matrix singular)
 INIT_WINDOW = 5.0            # s: the shortest log the start's windows can place
 
 
@@ -115,458 +109,6 @@ def options_of(model: Model) -> CommandGraphOptions:
     return replace(DEFAULTS, **known)
 
 
-# --------------------------------------------------------------------------- the graph
-
-@dataclass(frozen=True)
-class Layout:
-    """Pose knots and the command steps (padded to a common length) between consecutive knots."""
-
-    knots: np.ndarray        # (K,) pose-step index of each knot
-    seg_idx: np.ndarray      # (K-1, kmax) command step of each slot (0 in padding)
-    seg_dt: np.ndarray       # (K-1, kmax) step length (0 in padding)
-    obs_knot: np.ndarray     # (N,) knot of each observation
-
-    @property
-    def n_poses(self) -> int:
-        return len(self.knots)
-
-    @property
-    def seg_time(self) -> np.ndarray:
-        return self.seg_dt.sum(axis=1)
-
-
-def layout(log: Log, knot_dt: float) -> Layout:
-    """Knots every ``knot_dt`` seconds, at every observation's step, and at the first and last pose."""
-    tp = log.pose_times
-    T = log.steps
-    regular = np.searchsorted(tp, np.arange(tp[0], tp[-1], knot_dt))
-    knots = np.unique(np.concatenate([regular, log.obs_step, [0, T]])).astype(int)
-    n = np.diff(knots)
-    kmax = int(n.max())
-    slot = np.arange(kmax)[None, :]
-    mask = slot < n[:, None]
-    idx = np.where(mask, knots[:-1, None] + slot, 0)
-    dt = np.where(mask, log.dt[idx], 0.0)
-    return Layout(knots, idx, dt, np.searchsorted(knots, log.obs_step))
-
-
-@dataclass
-class State:
-    poses: np.ndarray        # (K, 3)
-    params: np.ndarray       # (P,) command-model coefficients
-    poly: np.ndarray         # (D+1,)
-    theta: np.ndarray = field(default_factory=lambda: np.zeros(0))   # the effects' parameters (augmented.theta_from_model)
-
-
-class Problem:
-    """The graph of one continuous-command log under fixed noise levels, linearised in numpy.
-
-    ``use`` masks (reading, bearing) say which sightings take part (outliers set aside). With the
-    regional_motion_noise effect each segment's forward and turn sigmas come from its region's k's,
-    the region taken at the knot ``poses`` (fixed for the problem's life, like every noise level).
-    """
-
-    def __init__(self, log: Log, lay: Layout, model: Model, use: tuple[np.ndarray, np.ndarray] | None = None,
-                 poses: np.ndarray | None = None, effects=()):
-        self.log, self.lay = log, lay
-        cm: CommandModel = model.command
-        bv, bw = cm.basis(log.controls, log.dt)
-        self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
-        self._effects(log, lay, model, list(effects), bv, bw)
-        ref = float(np.median(log.dt))
-        self.motion_sigma = (np.asarray(model.motion_noise, float)[None, :]
-                             * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None])
-        self.seg_region = None
-        if RMN.RegionalMotionNoise.name in model.effects:
-            if poses is None:
-                raise ValueError("regional_motion_noise: the problem needs the knot poses to place its segments")
-            regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
-            self.seg_region = regions.of(np.asarray(poses)[:-1, :2])
-            v = cm.velocities(log.controls, log.dt)[lay.seg_idx]
-            self.seg_r = np.sum(np.abs(v[..., 0]) * lay.seg_dt, axis=1)
-            self.seg_turn = np.sum(np.abs(v[..., 2]) * lay.seg_dt, axis=1)
-            vr, vt = RMN.variances(k[self.seg_region], self.seg_r, self.seg_turn)
-            self.motion_sigma[:, 0], self.motion_sigma[:, 2] = np.sqrt(vr), np.sqrt(vt)
-        lm = log.landmark_xy[log.landmark_index]
-        r, b = ~np.isnan(log.obs_reading), ~np.isnan(log.obs_bearing)
-        if use is not None:
-            r, b = r & use[0], b & use[1]
-        self.r_sel, self.b_sel = r, b
-        self.r_knot, self.r_lm, self.r_z = lay.obs_knot[r], lm[r], log.obs_reading[r]
-        self.b_knot, self.b_lm, self.b_z = lay.obs_knot[b], lm[b], log.obs_bearing[b]
-        self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
-        self.r_scale = np.ones(int(r.sum()))     # per reading: the noise effects' factor on its sigma, fixed for the
-        self.weight = np.ones(len(log.obs_t))    # problem's life (distances from the knot ``poses``), as every noise
-        if self.noise_effects:                   # level; and each sighting's inlier weight under a false-detection mixture
-            if poses is None:
-                raise ValueError(f"{self.noise_effects[0][0].name}: the problem needs the knot poses for its distances")
-            self.r_dist = np.hypot(*(self.r_lm - np.asarray(poses)[self.r_knot, :2]).T)
-            self.r_scale = augmented.reading_scale(self.noise_effects, augmented.theta_from_model(effects, model),
-                                                   self.r_dist)
-        self.mixed = any(e.mixture for e, _ in self.noise_effects)
-        self.measured = np.isfinite(log.obs_reading) | np.isfinite(log.obs_bearing)   # sightings with any channel
-        if self.mixed:
-            self.weight = self.mixture(np.asarray(poses)[lay.obs_knot], model)["weight"]
-        self.r_w, self.b_w = np.sqrt(self.weight[r]), np.sqrt(self.weight[b])
-        self.n_params, self.n_poly, self.basis = len(cm.params), len(model.reading_poly), model.reading_basis
-        nominal = for_commands(log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
-        self.p_mean = np.concatenate([nominal.params, self.theta_prior[0]])
-        self.p_sigma = np.concatenate([PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef))),
-                                       self.theta_prior[1]])
-        self.n_m = self.n_params + len(self.ls_index)      # the vector variable M(0): command map, effect parameters
-
-    def _effects(self, log: Log, lay: Layout, model: Model, effects: list, bv: np.ndarray, bw: np.ndarray) -> None:
-        """The hooked effects' parameter layout, priors and the context their hooks read (step and sighting)."""
-        self.effects = effects
-        self.slices = augmented.parameter_slices(effects)
-        self.ls_index = np.concatenate([np.arange(s.start, s.stop) for e, s in zip(effects, self.slices)
-                                        if not e.noise_only] + [np.zeros(0, int)]).astype(int)
-        self.motion_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "motion"]
-        self.sensor_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "sensor" and not e.noise_only]
-        self.noise_effects = [(e, s) for e, s in zip(effects, self.slices) if e.channel == "sensor" and e.noise_only]
-        self.theta_prior = augmented.parameter_prior(effects, self.slices)
-        if self.motion_effects:          # step context, one row per slot of the padded segments
-            c = log.controls
-            change = np.concatenate([[True], np.any(c[1:] != c[:-1], axis=1)])
-            run0 = np.maximum.accumulate(np.where(change, np.arange(len(c)), 0))
-            prev = np.maximum(run0 - 1, 0)
-            t0 = log.pose_times[:-1] - log.pose_times[0]
-            idx = lay.seg_idx
-            self.m_ctx = {"t": t0[idx].ravel(), "since": (t0 - t0[run0])[idx].ravel(),
-                          "dt": np.where(lay.seg_dt > 0, lay.seg_dt, float(np.median(log.dt))).ravel()}
-            self.Bv_prev, self.Bw_prev = bv[prev][idx], bw[prev][idx]
-        if self.sensor_effects:
-            both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
-            self.Bv_obs, self.Bw_obs = both[:, :bv.shape[1]], both[:, bv.shape[1]:]
-            self.s_ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan}
-
-    def mixture(self, poses_at_obs: np.ndarray, model: Model) -> dict:
-        """Every sighting's inlier weight and log density (reading and bearing together, gated or not) at
-        ``poses_at_obs`` under ``model``'s noise levels and noise effects: a false-detection mixture's, or
-        Gaussian (weight 1) without one."""
-        res = sighting_residuals(self.log, poses_at_obs, model, self.effects)
-        theta = augmented.theta_from_model(self.effects, model)
-        scale = augmented.reading_scale(self.noise_effects, theta, res["distance"])
-        fraction = float(sum(e.outlier_fraction(theta[s]) for e, s in self.noise_effects))
-        return mixture_terms(res["reading"], res["bearing_residual"], model.reading_sigma * scale,
-                             model.bearing_sigma, fraction, reading_span(self.log.obs_reading))
-
-    def mixture_log_likelihood(self, poses_at_obs: np.ndarray, model: Model) -> float:
-        """Sum of :meth:`mixture`'s log densities over every measured sighting, gated or not."""
-        return float(np.sum(self.mixture(poses_at_obs, model)["log_density"][self.measured]))
-
-    def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
-        """(..., 3) body velocity of basis rows under command parameters ``p`` (no sideways motion)."""
-        a, b = p[:Bv.shape[-1]], p[Bv.shape[-1]:self.n_params]
-        v = Bv @ a
-        return np.stack([v, np.zeros_like(v), Bw @ b], axis=-1)
-
-    def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
-        """(S, 3) displacement of every segment under command map ``p`` and the motion effects at ``theta``,
-        each step's context pose placed along the segment by the map alone from the segment's ``start`` pose."""
-        v0 = self._velocities(p, self.Bv, self.Bw)
-        _, rel = factors.command.integrate(v0, self.lay.seg_dt)
-        c, s = np.cos(start[:, 2])[:, None], np.sin(start[:, 2])[:, None]
-        pose = np.stack([start[:, 0:1] + c * rel[..., 0] - s * rel[..., 1],
-                         start[:, 1:2] + s * rel[..., 0] + c * rel[..., 1], start[:, 2:3] + rel[..., 2]], axis=-1)
-        fn = augmented.motion_function(self.motion_effects, self.m_ctx, theta)
-        v = fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.Bw_prev).reshape(-1, 3),
-               pose.reshape(-1, 3)).reshape(v0.shape)
-        return factors.command.integrate(v, self.lay.seg_dt)[0]
-
-    def _motion_with_effects(self, st: State):
-        """Motion residuals and Jacobians (Ha, Hb, Hm over M(0)) through the motion effects' hooks; the
-        derivatives are central differences of the vectorised forward pass (few parameters)."""
-        P = st.poses
-        rel, Ha, Hb = factors.command.relative(P[:-1], P[1:])
-        d = self._segment_motion(st.params, st.theta, P[:-1])
-        e = np.column_stack([rel[:, :2] - d[:, :2], wrap(rel[:, 2] - d[:, 2])])
-        h = factors.effect_motion.STEP
-        for c in range(3):
-            dp = (self._segment_motion(st.params, st.theta, factors.effect_motion.body_step(P[:-1], c, h))
-                  - self._segment_motion(st.params, st.theta, factors.effect_motion.body_step(P[:-1], c, -h)))
-            Ha[:, :, c] -= dp / (2 * h)
-        Hm = np.zeros((len(e), 3, self.n_m))
-        for j in range(self.n_m):
-            p, th = st.params.copy(), st.theta.copy()
-            if j < self.n_params:
-                step = h * max(1.0, abs(p[j]))
-                p[j] += step
-                plus = self._segment_motion(p, th, P[:-1])
-                p[j] -= 2 * step
-                minus = self._segment_motion(p, th, P[:-1])
-            else:
-                col = self.ls_index[j - self.n_params]
-                if not any(s.start <= col < s.stop for _, s in self.motion_effects):
-                    continue
-                step = h * max(1.0, abs(th[col]))
-                th[col] += step
-                plus = self._segment_motion(p, th, P[:-1])
-                th[col] -= 2 * step
-                minus = self._segment_motion(p, th, P[:-1])
-            Hm[:, :, j] = -(plus - minus) / (2 * step)
-        return e, [Ha, Hb, Hm]
-
-    def rows(self, st: State, robust_weights: bool = True):
-        """Whitened rows: motion (ae, aJ), readings and bearings (re, rJ, be, bJ; Huber-weighted unless
-        ``robust_weights`` is false), priors pe."""
-        P = st.poses
-        if self.motion_effects:
-            e, J = self._motion_with_effects(st)
-        else:
-            e, J = factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)
-            J[2] = np.concatenate([J[2], np.zeros((len(e), 3, self.n_m - self.n_params))], axis=2)
-        w = 1.0 / self.motion_sigma
-        ae, aJ = e * w, [j * w[:, :, None] for j in J]
-        re, rJ, be, bJ = self.sightings(st)
-        if self.noise_effects:
-            w = self.r_w / self.r_scale
-            re, rJ = re * w, [j * w[:, None] for j in rJ]
-            be, bJ = be * self.b_w, [j * self.b_w[:, None] for j in bJ]
-        if robust_weights:
-            w = robust.huber(re)
-            re, rJ = re * w, [j * w[:, None] for j in rJ]
-            w = robust.huber(be)
-            be, bJ = be * w, [j * w[:, None] for j in bJ]
-        m = np.concatenate([st.params, st.theta[self.ls_index]])
-        pe = np.concatenate([(m - self.p_mean) / self.p_sigma, st.poly / POLY_PRIOR_SIGMA])
-        return ae, aJ, re, rJ, be, bJ, pe
-
-    def motion_residual(self, st: State) -> np.ndarray:
-        """(S, 3) motion residual of every segment (body-frame pose difference minus the model's), unwhitened."""
-        if self.motion_effects:
-            return self._motion_with_effects(st)[0]
-        P = st.poses
-        return factors.command.error(P[:-1], P[1:], st.params, self.Bv, self.Bw, self.lay.seg_dt)[0]
-
-    def sightings(self, st: State):
-        """Whitened reading and bearing residuals and their Jacobians (reading: pose, polynomial, M(0);
-        bearing: pose, M(0)), before the Huber weights."""
-        if self.sensor_effects:
-            return self._sightings_with_effects(st)
-        nr, nb = len(self.r_z), len(self.b_z)
-        re, rJ, be, bJ = self._sightings(st)
-        return re, [*rJ, np.zeros((nr, self.n_m))], be, [bJ, np.zeros((nb, self.n_m))]
-
-    def _sightings_with_effects(self, st: State):
-        """The sightings through the sensor effects' hooks (:mod:`factors.effect_sighting`); a latency's velocity
-        is the command map's at the sighting, so its derivative reaches the map's parameters."""
-        log = self.log
-        velocity = self._velocities(st.params, self.Bv_obs, self.Bw_obs)
-        fn = augmented.sensor_function(self.sensor_effects, {**self.s_ctx, "velocity": velocity},
-                                       log.landmark_xy[log.landmark_index], self.basis)
-        uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
-        ls_slices = [s for _, s in self.sensor_effects]
-        r_idx, b_idx = np.flatnonzero(self.r_sel), np.flatnonzero(self.b_sel)
-        (er, Jr), (eb, Jb) = factors.effect_sighting.error(
-            fn, st.poses, st.poly, st.theta, self.ls_index, ls_slices, self.lay.obs_knot, r_idx, b_idx,
-            log.obs_reading, log.obs_bearing, True, velocity if uses_velocity else None)
-        nv = self.Bv.shape[-1]
-
-        def m_cols(J, idx):
-            out = np.zeros((len(idx), self.n_m))
-            out[:, :nv] = J["velocity"][:, 0:1] * self.Bv_obs[idx]
-            out[:, nv:self.n_params] = J["velocity"][:, 2:3] * self.Bw_obs[idx]
-            if J["theta"] is not None:
-                out[:, self.n_params:] = J["theta"]
-            return out
-
-        sr, sb = self.reading_sigma, self.bearing_sigma
-        return (er / sr, [Jr["pose"] / sr, Jr["poly"] / sr, m_cols(Jr, r_idx) / sr],
-                eb / sb, [Jb["pose"] / sb, m_cols(Jb, b_idx) / sb])
-
-    def _sightings(self, st: State):
-        """Whitened reading and bearing residuals and their Jacobians without sensor effects."""
-        P = st.poses
-        e, J = factors.reading.error(P[self.r_knot], st.poly[None], self.r_lm, self.r_z, self.basis)
-        re, rJ = e[:, 0] / self.reading_sigma, [J[0][:, 0] / self.reading_sigma, J[1][:, 0] / self.reading_sigma]
-        e, J = factors.bearing.error(P[self.b_knot], self.b_lm, self.b_z)
-        be, bJ = e[:, 0] / self.bearing_sigma, J[0][:, 0] / self.bearing_sigma
-        return re, rJ, be, bJ
-
-    def set_aside(self, model: Model) -> int:
-        """Sightings of a channel ``model`` measures that the gate left out of this problem (gross outliers)."""
-        log = self.log
-        return int(np.sum((np.isfinite(log.obs_reading) & ~self.r_sel & model.has("reading"))
-                          | (np.isfinite(log.obs_bearing) & ~self.b_sel & model.has("bearing"))))
-
-    def cost(self, st: State) -> float:
-        """Half the squared motion and prior rows plus the sightings' Huber loss (what each IRLS step lowers)."""
-        ae, _, re, _, be, _, pe = self.rows(st, robust_weights=False)
-        return (0.5 * float(np.sum(ae ** 2) + np.sum(pe ** 2))
-                + float(np.sum(robust.huber_loss(re)) + np.sum(robust.huber_loss(be))))
-
-    def linearize(self, st: State, poses_only: bool = False) -> gtsam.GaussianFactorGraph:
-        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st)
-        unit3 = gtsam.noiseModel.Unit.Create(3)
-        g = gtsam.GaussianFactorGraph()
-        for i in range(self.lay.n_poses - 1):
-            if poses_only:
-                g.add(X(i), Ha[i], X(i + 1), Hb[i], -ae[i], unit3)
-            else:
-                g.add(X(i), Ha[i], X(i + 1), Hb[i], M(0), Hp[i], -ae[i], unit3)
-        D = self.n_poly
-        knot = np.concatenate([self.r_knot, self.b_knot])
-        Jp = np.concatenate([rJ[0], bJ[0]])
-        Jc = np.concatenate([rJ[1], np.zeros((len(self.b_knot), D))])
-        e = np.concatenate([re, be])
-        order = np.argsort(knot, kind="stable")
-        Jm = np.concatenate([rJ[2], bJ[1]])[order] if self.sensor_effects else None
-        G.add_sightings(g, knot[order], Jp[order], Jc[order], e[order], poses_only, Jm)
-        if poses_only:
-            return g
-        Pn = self.n_m
-        g.add(M(0), np.diag(1 / self.p_sigma), -pe[:Pn], gtsam.noiseModel.Unit.Create(Pn))
-        g.add(C(0), np.eye(D) / POLY_PRIOR_SIGMA, -pe[Pn:], gtsam.noiseModel.Unit.Create(D))
-        return g
-
-    def normal_equations(self, st: State, poses_only: bool = False) -> tuple:
-        """Blocks of J^T J and J^T e for the chain's own elimination (:func:`casm_graph.graph.chain.solve_arrow`,
-        GTSAM's solve with the parameters [M(0), C(0)] ordered last, without a factor per row built in Python)."""
-        ae, (Ha, Hb, Hm), re, rJ, be, bJ, pe = self.rows(st)
-        Ht = np.concatenate([Hm, np.zeros((len(ae), 3, self.n_poly))], axis=2)
-        Jt = np.concatenate([np.concatenate([rJ[2], rJ[1]], axis=1),
-                             np.concatenate([bJ[1], np.zeros((len(be), self.n_poly))], axis=1)])
-        prior = np.concatenate([1 / self.p_sigma, np.full(self.n_poly, 1 / POLY_PRIOR_SIGMA)])
-        return chain.normal_equations(Ha, Hb, Ht, ae, np.concatenate([self.r_knot, self.b_knot]),
-                                      np.concatenate([rJ[0], bJ[0]]), Jt, np.concatenate([re, be]), prior, pe,
-                                      poses_only)
-
-    def solve_damped(self, neq: tuple, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        """Damped Gauss-Newton step (d poses, d parameters) from :meth:`normal_equations`."""
-        return chain.solve_arrow(*neq, lam)
-
-    def retract(self, st: State, delta) -> State:
-        """Apply a step given as a ``gtsam.VectorValues`` or as arrays (d poses (K, 3), d parameters or empty)."""
-        if isinstance(delta, gtsam.VectorValues):
-            poses = G.retract_poses(st.poses, delta)
-            if not delta.exists(C(0)):
-                return State(poses, st.params, st.poly, st.theta)
-            dm, dc = np.asarray(delta.at(M(0))), np.asarray(delta.at(C(0)))
-        else:
-            poses = G.retract_poses(st.poses, delta[0])
-            if not len(delta[1]):
-                return State(poses, st.params, st.poly, st.theta)
-            dm, dc = delta[1][:self.n_m], delta[1][self.n_m:]
-        theta = st.theta.copy()
-        theta[self.ls_index] += dm[self.n_params:]
-        return State(poses, st.params + dm[:self.n_params], st.poly + dc, theta)
-
-    def keys_dims(self) -> list[tuple[int, int]]:
-        return [(X(i), 3) for i in range(self.lay.n_poses)] + [(M(0), self.n_m), (C(0), self.n_poly)]
-
-    def effects_std(self, m_std: np.ndarray) -> dict:
-        """Each least-squares effect parameter's std, by name, from the std of M(0)'s entries (the command map's,
-        then the effect parameters least squares moves)."""
-        col = {int(c): self.n_params + j for j, c in enumerate(self.ls_index)}
-        return {e.name: {p: float(m_std[col[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
-                for e, s in zip(self.effects, self.slices) if not e.noise_only}
-
-    def jacobian(self, st: State, poses_only: bool = False, robust_weights: bool = True):
-        """Whitened sparse Jacobian, residual and the row groups of each noise channel (see :meth:`rows`);
-        columns: poses, then M(0) (command map, effect parameters), then the polynomial."""
-        ae, (Ha, Hb, Hp), re, rJ, be, bJ, pe = self.rows(st, robust_weights)
-        K, Pn, D = self.lay.n_poses, self.n_m, self.n_poly
-        n_act, n_r, n_b = 3 * (K - 1), len(re), len(be)
-        rows, cols, vals = [], [], []
-
-        def block(row0, J, col0):
-            _, m, d = J.shape
-            rows.append(np.broadcast_to(row0[:, None, None] + np.arange(m)[None, :, None], J.shape).ravel())
-            cols.append(np.broadcast_to(col0[:, None, None] + np.arange(d)[None, None, :], J.shape).ravel())
-            vals.append(J.ravel())
-
-        seg = np.arange(K - 1)
-        block(3 * seg, Ha, 3 * seg)
-        block(3 * seg, Hb, 3 * (seg + 1))
-        block(n_act + np.arange(n_r), rJ[0][:, None, :], 3 * self.r_knot)
-        block(n_act + n_r + np.arange(n_b), bJ[0][:, None, :], 3 * self.b_knot)
-        n_rows, n_cols = n_act + n_r + n_b, 3 * K
-        e = np.concatenate([ae.ravel(), re, be])
-        if not poses_only:
-            block(3 * seg, Hp, np.full(K - 1, 3 * K))
-            block(n_act + np.arange(n_r), rJ[1][:, None, :], np.full(n_r, 3 * K + Pn))
-            if self.sensor_effects:
-                block(n_act + np.arange(n_r), rJ[2][:, None, :], np.full(n_r, 3 * K))
-                block(n_act + n_r + np.arange(n_b), bJ[1][:, None, :], np.full(n_b, 3 * K))
-            prior = np.concatenate([1 / self.p_sigma, np.full(D, 1 / POLY_PRIOR_SIGMA)])
-            rows.append(n_rows + np.arange(Pn + D))
-            cols.append(3 * K + np.arange(Pn + D))
-            vals.append(prior)
-            n_rows, n_cols = n_rows + Pn + D, n_cols + Pn + D
-            e = np.concatenate([e, pe])
-        A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(n_rows, n_cols))
-        groups = {"forward": np.arange(0, n_act, 3), "lateral": np.arange(1, n_act, 3),
-                  "turn": np.arange(2, n_act, 3), "reading": n_act + np.arange(n_r),
-                  "bearing": n_act + n_r + np.arange(n_b)}
-        return A, e, groups
-
-
-def estimate_noise(problem: Problem, st: State, model: Model, seed: int = 0, poses_only: bool = False) -> Model:
-    """Every noise level re-estimated at the current optimum, degrees of freedom accounted for.
-
-    With regional_motion_noise, each region's (k_r, k_t, k_d) are refitted by maximum likelihood to its
-    segments' expected squared forward and turn errors, an EM step: E[eps^2] = sigma^2 (w^2 + h), w the
-    whitened residual and h the leverage of its row (the hat matrix's diagonal, exact). A region with
-    fewer than ``MIN_SEGMENTS`` segments keeps its k's and is recorded as undetermined (its count).
-    """
-    A, e, groups = problem.jacobian(st, poses_only=poses_only)
-    regional = problem.seg_region is not None
-    lu = noise.information_solver(A, problem.lay.n_poses)   # the one solver of every graph's noise step
-    if lu is None:
-        raise LogError(augmented.UNDETERMINED)
-    traces = noise.hat_traces(A, groups, seed=seed, lu=lu)
-    # sightings beyond the gate are already out of the problem (``gate``); the Huber-weighted sums are taken as they
-    # are (the table graph's gate and efficiency correction moved MRCLAM robot 1's fit: see BENCHMARKS, bad data)
-    counts = ({"reading": float(np.sum(problem.weight[problem.r_sel])),
-               "bearing": float(np.sum(problem.weight[problem.b_sel]))} if problem.mixed else None)
-    new = noise.group_scales(e, groups, traces, counts=counts)
-    m = np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]]
-    m[1] = min(m[1], m[0])      # wheels do not slip sideways: lateral noise no larger than forward
-    m = np.maximum(m, MIN_MOTION_SIGMA)
-    model = model.with_(motion_noise=m, reading_sigma=model.reading_sigma * new["reading"],
-                        bearing_sigma=model.bearing_sigma * new["bearing"])
-    model = noise_effects_step(problem, st, model)
-    if not regional:
-        return model
-    regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
-    n = len(problem.seg_region)
-    w = e[:3 * n].reshape(-1, 3)
-    h = np.clip(noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]]), lu=lu).reshape(2, n).T, 0.0, 1.0)
-    e2 = problem.motion_sigma[:, [0, 2]] ** 2 * (w[:, [0, 2]] ** 2 + h)
-    k_new = k.copy()
-    for g in range(regions.count):
-        sel = problem.seg_region == g
-        if sel.sum() >= RMN.MIN_SEGMENTS:
-            k_new[g] = RMN.estimate(problem.seg_r[sel], problem.seg_turn[sel], e2[sel, 0], e2[sel, 1], k[g])
-    counts = np.bincount(problem.seg_region, minlength=regions.count)
-    return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k_new, counts)})
-
-
-def noise_effects_step(problem: Problem, st: State, model: Model) -> Model:
-    """``model`` with the noise-only sensor effects' parameters re-estimated from the readings' residuals at
-    ``st`` (each effect's own ``estimate_noise``, as on action tables), sigma the model's."""
-    if not problem.noise_effects:
-        return model
-    raw = problem.sightings(st)[0] * problem.reading_sigma
-    theta = augmented.theta_from_model(problem.effects, model)
-    weight = (problem.mixture(st.poses[problem.lay.obs_knot], model)["weight"] if problem.mixed
-              else np.ones(len(problem.measured)))
-    out = dict(model.effects)
-    for e, sl in problem.noise_effects:
-        if e.mixture:                  # a mixture: its share from every sighting's weight, the gated ones too
-            ctx = {"weight": weight[problem.measured]}
-            theta[sl] = e.estimate_noise(theta[sl], None, None, None, ctx)
-        else:
-            ctx = {"weight": weight[problem.r_sel], "reading_scale": problem.r_scale,
-                   "reading_sigma": model.reading_sigma, "bearing_sigma": model.bearing_sigma}
-            theta[sl] = e.estimate_noise(theta[sl], raw / (model.reading_sigma * problem.r_scale), None,
-                                         problem.r_dist, ctx)
-        out[e.name] = e.describe(theta[sl])
-    return model.with_(effects=out)
-
-
 def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects=()) -> dict:
     """Per sighting: distance and bearing from its pose, and the reading and bearing residuals
     (measured minus predicted, in the sensor's units; NaN where not measured), through the sensor
@@ -597,45 +139,6 @@ def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GAT
     r = np.abs(res["reading"]) / (model.reading_sigma * scale)
     b = np.abs(res["bearing_residual"]) / model.bearing_sigma
     return ~(r > z), ~(b > z)
-
-
-def state(poses: np.ndarray, model: Model, effects=()) -> State:
-    return State(np.asarray(poses, float).copy(), model.command.params.copy(),
-                 np.asarray(model.reading_poly, float).copy(), augmented.theta_from_model(list(effects), model))
-
-
-def with_state(model: Model, st: State, effects=()) -> Model:
-    """``model`` with the command map, polynomial and the hooked ``effects``' parameters of ``st``."""
-    model = model.with_(command=model.command.with_params(st.params), reading_poly=st.poly.copy())
-    if not effects:
-        return model
-    described = {e.name: e.describe(st.theta[s]) for e, s in zip(effects, augmented.parameter_slices(list(effects)))
-                 if not e.noise_only}                  # noise effects: set by the noise step, not carried in ``st``
-    return model.with_(effects={**model.effects, **described})
-
-
-def velocity_window(model: Model, effects) -> float:
-    """Seconds before a sighting over which the sensor hooks' velocity is averaged: the value of the parameter an
-    effect names as its ``velocity_window`` (a latency's delay), 0 without one."""
-    return float(sum(abs(model.effects.get(e.name, {}).get(e.velocity_window, 0.0))
-                     for e in effects if getattr(e, "velocity_window", "")))
-
-
-def sighting_means(log: Log, rows: np.ndarray, window: float) -> np.ndarray:
-    """(N, c) mean of the per-step ``rows`` (T, c) over the ``window`` seconds before each sighting, and at least
-    over the step that ends at it: the displacement a delayed image missed, divided by the delay, when the
-    velocity changes within the delay."""
-    step = np.clip(log.obs_step - 1, 0, log.steps - 1)
-    out = np.asarray(rows, float)[step]
-    tp = log.pose_times
-    t1 = tp[log.obs_step]
-    t0 = np.maximum(t1 - window, tp[0])
-    wide = (t1 - t0 > log.dt[step]) & (log.obs_step > 0)
-    if wide.any():
-        cum = np.vstack([np.zeros(rows.shape[1]), np.cumsum(rows * log.dt[:, None], axis=0)])
-        for j in range(rows.shape[1]):
-            out[wide, j] = (np.interp(t1[wide], tp, cum[:, j]) - np.interp(t0[wide], tp, cum[:, j])) / (t1 - t0)[wide]
-    return out
 
 
 def step_velocities(log: Log, model: Model) -> np.ndarray:
@@ -725,21 +228,21 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
     problem = st = None
     r = 0
     while r < rounds:
-        problem = Problem(log, lay, model, use, poses, effects)
+        problem = Problem(log, model, effects, lay=lay, gate=use, poses=poses)
 
         def tick(c):
             trace.append(c)
             stages.append(label)
             progress.step(0, cost=c)
 
-        st, h = least_squares(problem, state(poses, model, effects), max_iterations=iterations, on_iteration=tick,
+        st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick,
                               freeze_parameters=freeze)
         its += h.iterations
         poses = st.poses
-        model = with_state(model, st, effects)
+        model = problem.with_state(model, st)
         if r < rounds - 1 or last_noise:
             before = noise_levels(model)
-            model = estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)
+            model = augmented.estimate_noise(problem, st, model, seed=seed + r, poses_only=freeze)[0]
             use = gate(log, poses[lay.obs_knot], model, effects=effects)
             moved = float(np.max(np.abs(np.log(noise_levels(model) / before))))
             if settle > 0 and r == rounds - 2 and moved > noise_tol:
@@ -752,21 +255,28 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
 def problem_log_likelihood(problem: "Problem", st, model: Model) -> float:
     """log p(data, knots | model) at ``st``: the cost with its Gaussian normalisers (noise levels fixed)."""
     if problem.mixed:       # every sighting, gated or not, by its mixture density; motion and priors as below
-        ae, _, _, _, _, _, pe = problem.rows(st, robust_weights=False)
+        rows = problem.rows(st, jacobians=False)
+        ae, pe = rows.action_e, rows.prior_e
         return float(-0.5 * np.sum(ae ** 2) - 0.5 * np.sum(pe ** 2) - np.sum(np.log(problem.motion_sigma))
                      - 0.5 * ae.size * np.log(2 * np.pi)
-                     + problem.mixture_log_likelihood(st.poses[problem.lay.obs_knot], model))
+                     + mixture_log_likelihood(problem, st))
     sel, n_motion = problem.r_sel, problem.motion_sigma.size
     log_det = (np.sum(np.log(problem.motion_sigma)) + sel.sum() * np.log(model.reading_sigma)
-               + np.sum(np.log(problem.r_scale)) + problem.b_sel.sum() * np.log(model.bearing_sigma))
+               + np.sum(np.log(problem.r_scale[problem.r_idx])) + problem.b_sel.sum() * np.log(model.bearing_sigma))
     n = n_motion + int(sel.sum()) + int(problem.b_sel.sum())
     return float(-problem.cost(st) - log_det - 0.5 * n * np.log(2 * np.pi))
 
 
 def log_likelihood(log: Log, lay: Layout, model: Model, knot_poses: np.ndarray) -> float:
     """``problem_log_likelihood`` of a model and knot poses, sightings gated as a new round would gate them."""
-    problem = Problem(log, lay, model, gate(log, knot_poses[lay.obs_knot], model), knot_poses)
-    return problem_log_likelihood(problem, state(knot_poses, model), model)
+    problem = Problem(log, model, lay=lay, gate=gate(log, knot_poses[lay.obs_knot], model), poses=knot_poses)
+    return problem_log_likelihood(problem, problem.state(knot_poses, model), model)
+
+
+def mixture_log_likelihood(problem: Problem, st: State) -> float:
+    """Every measured sighting's log density under the problem's noise levels and noise effects (a
+    false-detection mixture's), gated or not."""
+    return float(np.sum(problem.observation_terms(st)["log_density"][problem.measured]))
 
 
 @dataclass
@@ -884,10 +394,10 @@ def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Probl
     knot_std = world_std(knot_poses, body, cov_xy)
     t = log.pose_times
     pose_std = np.column_stack([np.interp(t, t[lay.knots], knot_std[:, j]) for j in range(3)])
-    mstd = np.sqrt(np.clip(np.diag(m.marginalCovariance(M(0))), 0, None))
-    cstd = np.sqrt(np.diag(m.marginalCovariance(C(0))))
-    model = model.with_(command=model.command.with_params(st.params, mstd[:problem.n_params]), reading_poly_std=cstd)
-    return model, pose_std, problem.effects_std(mstd)
+    std = np.sqrt(np.clip(np.diag(m.marginalCovariance(THETA)), 0, None))
+    na, D = problem.n_action, problem.D
+    model = model.with_(command=model.command.with_params(st.params, std[:na]), reading_poly_std=std[na:na + D])
+    return model, pose_std, problem.effects_std(std)
 
 
 # --------------------------------------------------------------------------- effects for continuous commands
@@ -1036,18 +546,18 @@ def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.n
     fixed), so two models compare as a likelihood ratio on the same data. With ``rounds`` > 1 the noise step and
     the second LM repeat until the log-likelihood moves by less than ``tol`` nats (an effect whose parameters move
     the poses far, as a latency does, needs them); ``iterations`` bounds the first LM (half as many after)."""
-    problem = Problem(log, lay, model, use, start, effects)
-    st, _ = least_squares(problem, state(start, model, effects), max_iterations=iterations)
-    model = with_state(model, st, effects)
+    problem = Problem(log, model, effects, lay=lay, gate=use, poses=start)
+    st, _ = least_squares(problem, problem.state(start, model), max_iterations=iterations)
+    model = problem.with_state(model, st)
     ll = -np.inf
     for _ in range(rounds):
         model = _ml_noise(problem, st, model)
         if problem.noise_effects:
-            model = noise_effects_step(problem, st, model)
-            model = _ml_noise(Problem(log, lay, model, use, st.poses, effects), st, model)
-        problem = Problem(log, lay, model, use, st.poses, effects)
+            model = augmented.noise_effects(problem, st, model)[0]
+            model = _ml_noise(Problem(log, model, effects, lay=lay, gate=use, poses=st.poses), st, model)
+        problem = Problem(log, model, effects, lay=lay, gate=use, poses=st.poses)
         st, _ = least_squares(problem, st, max_iterations=iterations // 2)
-        model = with_state(model, st, effects)
+        model = problem.with_state(model, st)
         last, ll = ll, _concentrated_log_likelihood(problem, st, model)
         if abs(ll - last) < tol:
             break
@@ -1055,7 +565,8 @@ def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.n
 
 
 def _group_sums(problem: Problem, st: State) -> dict:
-    ae, _, re, _, be, _, _ = problem.rows(st)
+    r = problem.rows(st, jacobians=False)
+    ae, re, be = r.action_e, r.reading_e, r.bearing_e
     sums = {"forward": ae[:, 0] ** 2, "lateral": ae[:, 1] ** 2, "turn": ae[:, 2] ** 2,
             "reading": re ** 2, "bearing": be ** 2}
     return {k: v for k, v in sums.items() if len(v)}     # a channel the log does not measure has no rows
@@ -1079,14 +590,14 @@ def _concentrated_log_likelihood(problem: Problem, st: State, model: Model) -> f
             "turn": problem.motion_sigma[:, 2]}
     out = 0.0
     if problem.mixed:
-        out += problem.mixture_log_likelihood(st.poses[problem.lay.obs_knot], model)
-        out += float(np.sum(np.log(problem.r_scale)))       # the mixture's density has the scales in it
+        out += mixture_log_likelihood(problem, st)
+        out += float(np.sum(np.log(problem.r_scale[problem.r_idx])))       # the mixture's density has the scales in it
     for k, w2 in _group_sums(problem, st).items():
         if problem.mixed and k in ("reading", "bearing"):
             continue
         ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
         out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
-    return float(out - np.sum(np.log(problem.r_scale)))
+    return float(out - np.sum(np.log(problem.r_scale[problem.r_idx])))
 
 
 def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress | None = None,
@@ -1099,7 +610,9 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
     o = options
     effects = augmented.instantiate(effects, log)
     full = layout(log, o.full_knot_dt)
-    model = with_state(base.model, state(base.poses[full.knots], base.model, effects), effects)
+    theta = augmented.theta_from_model(effects, base.model)     # the effects start where the model has them, else at
+    model = base.model.with_(effects={**base.model.effects, **{   # their own starts
+        e.name: e.describe(theta[s]) for e, s in zip(effects, augmented.parameter_slices(effects)) if not e.noise_only}})
     trace, stages = [], []
     progress.stage("effects", o.hooked_rounds)
     model, kp, problem, st, its, converged = optimise_rounds(

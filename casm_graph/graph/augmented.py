@@ -115,42 +115,55 @@ def sensor_function(sensor_effects, ctx: dict, landmark_xy: np.ndarray, basis: s
     return fn
 
 
-def estimate_noise(problem, st, model: Model, seed: int = 0, relax: float = 1.0) -> tuple[Model, np.ndarray]:
+def estimate_noise(problem, st, model: Model, seed: int = 0, relax: float = 1.0,
+                   poses_only: bool = False) -> tuple[Model, np.ndarray]:
     """Every noise level of ``problem`` (a :class:`casm_graph.graph.problem.Problem`) re-estimated at its optimum
-    ``st`` (:mod:`casm_graph.graph.noise`), and the noise-only effect parameters; the one noise step of every
-    action-table graph.
+    ``st`` (:mod:`casm_graph.graph.noise`), and the noise-only effect parameters (also described in the model's
+    effects); the one noise step of every graph. The action part says what the motion levels may be
+    (``noise_rules``) and re-estimates a motion-noise effect it places (``motion_noise_step``).
+    ``poses_only``: the parameters were held, so their columns take no degrees of freedom.
 
     ``relax`` > 1 over-relaxes the fixed-point step (in log sigma), which otherwise creeps down slowly from
     a loose start because the trajectory follows whatever freedom it is given. The hat traces' solves are
     :func:`casm_graph.graph.noise.information_solver`'s; a log they cannot answer (a landmark hundreds of
     kilometres off) ends in one line.
     """
-    A, e, groups = problem.jacobian(st)
+    A, e, groups = problem.jacobian(st, poses_only=poses_only)
     lu = noisemod.information_solver(A, problem.lay.n_poses)
     if lu is None:
         raise LogError(UNDETERMINED)
     traces = noisemod.hat_traces(A, groups, seed=seed, lu=lu)
-    robust_groups = ("reading", "bearing") if np.isfinite(problem.k) else ()
+    rules = problem.action.noise_rules
+    robust_groups = ("reading", "bearing") if np.isfinite(problem.k) and rules.huber_efficiency else ()
     new = {k: v ** relax for k, v in noisemod.group_scales(e, groups, traces, counts=problem.counts,
                                                             huber=robust_groups).items()}
     if not all(np.isfinite(v) and v > 0 for v in new.values()):
         raise LogError(UNDETERMINED)
-    m = model.with_(motion_noise=np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]],
-                    reading_sigma=model.reading_sigma * new["reading"],
+    motion = rules.apply(np.asarray(model.motion_noise, float) * [new["forward"], new["lateral"], new["turn"]])
+    m = model.with_(motion_noise=motion, reading_sigma=model.reading_sigma * new["reading"],
                     bearing_sigma=model.bearing_sigma * new["bearing"])
-    theta = st.theta.copy()
-    if not any(eff.noise_only for eff, _ in problem.sensor_effects):
+    return noise_effects(problem, st, problem.action.motion_noise_step(m, problem, e, A, groups, lu))
+
+
+def noise_effects(problem, st, model: Model) -> tuple[Model, np.ndarray]:
+    """``model`` and ``st``'s effect parameters with the noise-only sensor effects' re-estimated by their own
+    ``estimate_noise`` from the residuals at ``st`` (inlier weights those the least squares ran with) under
+    ``model``'s sigmas."""
+    m, theta = model, st.theta.copy()
+    if not problem.noise_effects:
         return m, theta
     t = problem.observation_terms(st)
-    for eff, s in problem.sensor_effects:
-        if eff.noise_only:
-            k = problem.obs_mask                       # hidden (held-out) observations do not count
-            z_r = t["reading"][k] / (m.reading_sigma * t["scale"][k])
-            z_b = t["bearing"][k] / m.bearing_sigma
-            ctx = {"weight": t["weight"][k], "reading_scale": t["scale"][k], "reading_sigma": m.reading_sigma,
-                   "bearing_sigma": m.bearing_sigma}
-            theta[s] = eff.estimate_noise(theta[s], z_r, z_b, t["distance"][k], ctx)
-    return m, theta
+    for eff, s in problem.noise_effects:
+        # a mixture's share counts every sighting not held out, the gated ones too; a noise law the readings in
+        # the graph
+        k = problem.obs_mask & problem.measured if eff.mixture else problem.r_sel
+        z_r = t["reading"][k] / (m.reading_sigma * t["scale"][k])
+        z_b = t["bearing"][k] / m.bearing_sigma
+        ctx = {"weight": t["weight"][k], "reading_scale": t["scale"][k], "reading_sigma": m.reading_sigma,
+               "bearing_sigma": m.bearing_sigma}
+        theta[s] = eff.estimate_noise(theta[s], z_r, z_b, t["distance"][k], ctx)
+    described = {eff.name: eff.describe(theta[s]) for eff, s in problem.noise_effects}
+    return m.with_(effects={**m.effects, **described}), theta
 
 
 def marginals(problem, st) -> tuple[np.ndarray, np.ndarray]:

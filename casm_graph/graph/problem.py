@@ -1,15 +1,14 @@
-"""The factor graph of one action-table log: poses, velocity table, sensor curve and any effects' parameters.
+"""The factor graph of one log: poses, the action model's parameters, sensor curve and any effects' parameters.
 
-One class serves every graph of such a log: the calibration's coarse graph (a pose every ``stride``
-steps, :func:`casm_graph.graph.table.layout`) and full graph, graph-em's E-step, the effect fits, the
-diagnosis and the uncertainty step. The parameters (the table's rows, the curve's coefficients, the
-least-squares parameters of the effects) travel as one vector, the dense arm of an arrow whose shaft is
-the pose chain; each row's Jacobian touches a few of its columns. Without effects the factors are the
-analytic ones of :mod:`factors`; an effect's hooks add the chained derivatives of
-:mod:`factors.effect_motion` and :mod:`factors.effect_sighting`. Noise-only effects (range-dependent
-noise, false detections) set per-observation scales and inlier weights that the noise step
-re-estimates, as for the sigmas. Sightings count through Huber's loss unless ``huber=False``
-(the effect fits and the marginal likelihood model them as Gaussian).
+One class serves every graph of every log: the action model is a part (:mod:`casm_graph.graph.actions`: a
+velocity table, or a command map), the sensor two optional channels (reading through the curve of distance;
+bearing). Calibration's coarse and full graphs, graph-em's E-step, the effect fits, the diagnosis and the
+uncertainty step all build it. The parameters (the action part's, the curve's coefficients, the least-squares
+parameters of the effects) travel as one vector, the dense arm of an arrow whose shaft is the pose chain.
+Without effects the factors are the analytic ones of :mod:`factors`; an effect's hooks add the chained
+derivatives of :mod:`factors.effect_motion` and :mod:`factors.effect_sighting`. Noise-only effects
+(range-dependent noise, false detections) set per-observation scales and inlier weights that the noise step
+re-estimates, as for the sigmas. Sightings count through Huber's loss unless ``huber=False``.
 """
 from __future__ import annotations
 
@@ -23,7 +22,8 @@ from gtsam.symbol_shorthand import T, X
 import factors
 from casm_graph.graph import chain, robust
 from casm_graph.graph import table as G
-from casm_graph.graph.augmented import (motion_function, parameter_prior, parameter_slices, reading_scale,
+from casm_graph.graph.actions import ACTIONS, default_layout, kind_of
+from casm_graph.graph.augmented import (parameter_prior, parameter_slices, reading_scale,
                                         sensor_function, theta_from_model)
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects import Effect
@@ -35,12 +35,23 @@ THETA = T(0)                      # the parameter vector's key in GTSAM graphs: 
 
 @dataclass
 class State:
-    """Variables: the poses of the layout's knots, the table, the polynomial, and the effects' parameters."""
+    """Variables: the poses of the layout's knots, the action model's parameters, the polynomial, and the effects'
+    parameters."""
 
     poses: np.ndarray                # (K, 3)
-    velocities: np.ndarray           # (A, 3)
+    action: np.ndarray               # a table's (A, 3) velocities, or a command map's coefficients (P,)
     poly: np.ndarray                 # (D,)
     theta: np.ndarray = field(default_factory=lambda: np.zeros(0))   # every effect parameter, noise-only ones too
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """An action table's (A, 3) rows."""
+        return self.action
+
+    @property
+    def params(self) -> np.ndarray:
+        """A command map's coefficients."""
+        return self.action
 
 
 @dataclass
@@ -65,99 +76,110 @@ class Rows:
 class Problem:
     """One log under fixed noise levels, with its effects; evaluated and linearised in numpy.
 
-    ``lay`` is the pose layout (a pose every step when omitted; effects need that). ``weight`` gives
-    each sighting's inlier weight (a false-detection mixture's), ``obs_mask`` hides sightings (held-out
-    folds, gated outliers). ``anchor`` holds the first pose's heading there (``graph.table.ANCHOR_SIGMA``):
-    without bearings every heading and body velocity may turn together, ranges and motion unchanged.
+    ``lay`` is the pose layout (the action part's default when omitted: a pose every step of an action
+    table, knots every 0.25 s of a command log). ``weight`` gives each sighting's inlier weight (a
+    false-detection mixture's), ``obs_mask`` hides sightings (held-out folds, pruned outliers); ``gate``, a
+    pair of (reading, bearing) masks, sets channels of sightings aside from least squares as gross outliers
+    (a false-detection mixture still counts them). ``poses`` (the knots) sets the per-observation
+    noise state (scales, inlier weights) and place-dependent motion noise there, fixed for the problem's
+    life. ``anchor`` holds the first pose's heading there (``graph.table.ANCHOR_SIGMA``): without bearings
+    every heading and body velocity may turn together, ranges and motion unchanged.
     """
 
-    def __init__(self, log: Log, model: Model, effects: list[Effect] = (), *, lay: G.Layout | None = None,
-                 theta: np.ndarray | None = None, obs_mask: np.ndarray | None = None,
-                 weight: np.ndarray | None = None, huber: bool = True, anchor: float | None = None):
+    def __init__(self, log: Log, model: Model, effects: list[Effect] = (), *, lay=None,
+                 theta: np.ndarray | None = None, obs_mask: np.ndarray | None = None, gate=None,
+                 weight: np.ndarray | None = None,
+                 huber: bool = True, anchor: float | None = None, poses: np.ndarray | None = None):
         self.log, self.model, self.effects = log, model, list(effects)
         self.anchor = anchor
-        self.lay = lay = G.layout(log, model, stride=1) if lay is None else lay
-        if self.effects and np.any(lay.seg_steps != 1):
-            raise ValueError("effects act step by step: their graph needs a pose at every step")
+        self.lay = lay = default_layout(log, model) if lay is None else lay
         self.k = robust.HUBER if huber else np.inf
         self.slices = parameter_slices(self.effects)
         ls = np.concatenate([np.arange(s.start, s.stop) for e, s in zip(self.effects, self.slices)
                              if not e.noise_only] + [np.zeros(0, int)]).astype(int)
         self.ls_index = ls                                   # effect parameters that least squares moves
-        self.A, self.D = lay.n_actions, len(model.reading_poly)
-        self.n_theta = 3 * self.A + self.D + len(ls)
-        self.basis = model.reading_basis
         self.motion_effects = [(e, s) for e, s in zip(self.effects, self.slices) if e.channel == "motion"]
         self.sensor_effects = [(e, s) for e, s in zip(self.effects, self.slices) if e.channel == "sensor"]
-        # motion context (one row per segment; a step each when effects are present)
-        act = lay.seg_action
-        change = np.concatenate([[True], act[1:] != act[:-1]])
-        start_idx = np.maximum.accumulate(np.where(change, np.arange(len(act)), 0))
-        self.prev_row = np.where(start_idx > 0, act[np.maximum(start_idx - 1, 0)], act)
-        t_rel = log.t[lay.knots[:-1]] - log.t[0]
-        self.m_ctx = {"t": t_rel, "since": t_rel - t_rel[start_idx], "dt": lay.seg_dt * lay.seg_steps}
-        self.motion_sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(lay.seg_steps)[:, None]
+        self.noise_effects = [(e, s) for e, s in self.sensor_effects if e.noise_only]
+        self.action = ACTIONS[kind_of(model, lay)](log, model, lay, self.motion_effects, ls, self.effects)
+        self.n_action, self.D = self.action.n, len(model.reading_poly)
+        self.n_theta = self.n_action + self.D + len(ls)
+        self.basis = model.reading_basis
+        self.motion_sigma = self.action.motion_sigma(model, poses)
         # observations
         n_obs = len(log.obs_t)
         self.obs_mask = np.ones(n_obs, bool) if obs_mask is None else np.asarray(obs_mask, bool)
+        gate_r, gate_b = (np.ones(n_obs, bool),) * 2 if gate is None else gate
         self.obs_knot = lay.obs_knot
         self.obs_lm = log.landmark_index
         self.obs_lmxy = log.landmark_xy[self.obs_lm]
         self.pan = log.camera_pan
-        self.r_idx = np.flatnonzero(np.isfinite(log.obs_reading) & self.obs_mask)
-        self.b_idx = np.flatnonzero(np.isfinite(log.obs_bearing) & self.obs_mask)
+        self.r_sel = np.isfinite(log.obs_reading) & self.obs_mask & np.asarray(gate_r, bool)
+        self.b_sel = np.isfinite(log.obs_bearing) & self.obs_mask & np.asarray(gate_b, bool)
+        self.r_idx, self.b_idx = np.flatnonzero(self.r_sel), np.flatnonzero(self.b_sel)
         self.r_knot, self.b_knot = self.obs_knot[self.r_idx], self.obs_knot[self.b_idx]
         self.r_lm, self.b_lm = self.obs_lmxy[self.r_idx], self.obs_lmxy[self.b_idx]
         self.s_idx = np.union1d(self.r_idx, self.b_idx)      # every sighting in the graph: its pose keeps off the landmark
+        self.measured = np.isfinite(log.obs_reading) | np.isfinite(log.obs_bearing)   # sightings with any channel
         # a coarse layout's sighting lies some steps from its knot: the knot's pose is carried there by the
-        # model's velocity of the action between (one action per segment: knots at every change), held for the
-        # problem's life like the noise levels, so that sightings inform the table only through the poses
-        shift = log.obs_step - lay.knots[lay.obs_knot]
-        self.obs_shift = shift if np.any(shift) else None
-        if self.obs_shift is not None:
-            seg = np.clip(np.where(shift >= 0, lay.obs_knot, lay.obs_knot - 1), 0, lay.n_poses - 2)
-            sign = np.where(shift < 0, -1.0, 1.0)
-            v = np.asarray(model.velocities, float)[lay.seg_action[seg]] * sign[:, None]
-            self.obs_carry = factors.action.displacement(v, np.abs(shift), lay.seg_dt[seg])[0]
+        # model's velocity of the action between, held for the problem's life like the noise levels
+        self.obs_carry = self.action.carry(model)
         self.reading_sigma, self.bearing_sigma = float(model.reading_sigma), float(model.bearing_sigma)
         self.reading_span = reading_span(log.obs_reading)
         self.r_scale = np.ones(n_obs)
         self.weight = np.ones(n_obs) if weight is None else np.asarray(weight, float).copy()
         th0 = theta if theta is not None else theta_from_model(self.effects, model)
         self.theta_noise = np.asarray(th0, float).copy()
-        self.prior_mean, self.prior_sigma = parameter_prior(self.effects, self.slices)
+        a_mean, a_sigma = self.action.prior(model)
+        e_mean, e_sigma = parameter_prior(self.effects, self.slices)
+        self.prior_mean = np.concatenate([a_mean, np.zeros(self.D), e_mean])
+        self.prior_sigma = np.concatenate([a_sigma, np.full(self.D, G.POLY_PRIOR_SIGMA), e_sigma])
+        self.mixed = any(e.mixture for e, _ in self.noise_effects)
+        if poses is not None and self.noise_effects:
+            self.refresh_noise_state(self.state(poses, model))
 
     @property
     def counts(self) -> dict[str, float]:
         """Each sighting channel's row count, its sightings' inlier weights summed."""
         return {"reading": float(np.sum(self.weight[self.r_idx])), "bearing": float(np.sum(self.weight[self.b_idx]))}
 
+    @property
+    def m_ctx(self) -> dict:
+        """The motion hooks' context of every segment (time, time since the action changed, duration)."""
+        return self.action.m_ctx
+
     # ------------------------------------------------------------------ state
     def state(self, poses: np.ndarray, model: Model, theta: np.ndarray | None = None) -> State:
-        """The variables at ``poses`` and ``model``'s table and curve; the effects' at ``theta`` (the problem's own
-        when None)."""
+        """The variables at ``poses`` and ``model``'s action parameters and curve; the effects' at ``theta`` (the
+        problem's own when None)."""
         th = self.theta_noise.copy() if theta is None else np.asarray(theta, float).copy()
-        return State(np.asarray(poses, float).copy(), np.asarray(model.velocities, float).copy(),
+        return State(np.asarray(poses, float).copy(), self.action.params(model),
                      np.asarray(model.reading_poly, float).copy(), th)
 
+    def with_state(self, model: Model, st: State) -> Model:
+        """``model`` with the action parameters, curve and least-squares effect parameters of ``st``."""
+        model = self.action.with_params(model, st.action).with_(reading_poly=st.poly.copy())
+        described = {e.name: e.describe(st.theta[s]) for e, s in zip(self.effects, self.slices) if not e.noise_only}
+        return model.with_(effects={**model.effects, **described}) if described else model
+
     def pack(self, st: State) -> np.ndarray:
-        return np.concatenate([st.velocities.ravel(), st.poly, st.theta[self.ls_index]])
+        return np.concatenate([np.ravel(st.action), st.poly, st.theta[self.ls_index]])
+
+    def effects_std(self, x_std: np.ndarray) -> dict:
+        """Each least-squares effect parameter's std, by name, from the std of the parameter vector's entries."""
+        col = {int(c): self.n_action + self.D + j for j, c in enumerate(self.ls_index)}
+        return {e.name: {p: float(x_std[col[i]]) for p, i in zip(e.params, range(s.start, s.stop))}
+                for e, s in zip(self.effects, self.slices) if not e.noise_only}
 
     # ------------------------------------------------------------- evaluation
     def step_velocity(self, st: State) -> np.ndarray:
-        """(S, 3) velocity each segment runs under the table and the motion effects."""
-        return factors.effect_motion.velocity(self._motion_fn(st), st.velocities[self.lay.seg_action],
-                                              st.velocities[self.prev_row], st.poses[:-1])
-
-    def _motion_fn(self, st: State):
-        return motion_function(self.motion_effects, self.m_ctx, st.theta)
+        """(S, 3) velocity each segment runs under the action model and the motion effects."""
+        return self.action.step_velocity(st.poses, st.action, st.theta)
 
     def sensor_context(self, st: State) -> dict:
-        """Context of every observation under ``st`` (velocity from the previous step)."""
-        v = self.step_velocity(st)
-        step = np.clip(self.log.obs_step - 1, 0, len(v) - 1)
-        return {"t": self.log.obs_t - self.log.t[0], "landmark": self.obs_lm, "pan": self.pan,
-                "velocity": v[step]}
+        """Context of every observation under ``st`` (the velocity the action part gives a sighting)."""
+        v, _ = self.action.sighting_velocity(st.poses, st.action, st.theta)
+        return {"t": self.log.obs_t - self.log.t[0], "landmark": self.obs_lm, "pan": self.pan, "velocity": v}
 
     def _sensor_fn(self, ctx):
         return sensor_function(self.sensor_effects, ctx, self.obs_lmxy, self.basis)
@@ -170,42 +192,29 @@ class Problem:
         return {"reading": pred, "bearing": wrap(bearing), "distance": d}
 
     def _motion_rows(self, st: State, jacobians: bool, parameters: bool):
-        lay, P = self.lay, st.poses
-        S = lay.n_poses - 1
+        e, (Ha, Hb), Hx, Hls = self.action.motion(st.poses, st.action, st.theta, jacobians, parameters)
         w = 1.0 / self.motion_sigma
-        if self.motion_effects:
-            e, (Ha, Hb, _), dv = factors.effect_motion.error(
-                self._motion_fn(st), P, st.velocities, lay.seg_action, self.prev_row, self.log.dt,
-                st.theta, self.ls_index, [s for _, s in self.motion_effects])
-            own, prev, Ha = dv["own"], dv["prev"], Ha + dv["pose"]
-            d_theta = dv["theta"]
-        else:
-            e, (Ha, Hb, own) = factors.action.error(P[:-1], P[1:], st.velocities[lay.seg_action], lay.seg_steps,
-                                                    lay.seg_dt)
-            prev, d_theta = None, None
         ae = e * w
         if not jacobians:
             return ae, [None, None, None]
         Ht = None
         if parameters:
-            Ht = np.zeros((S, 3, self.n_theta))
-            rows3 = np.arange(S)
-            own = own * w[:, :, None]
-            prev = None if prev is None else prev * w[:, :, None]
-            for c in range(3):             # one row per step in each statement: no repeated index, no add.at
-                Ht[rows3, :, 3 * lay.seg_action + c] += own[:, :, c]
-                if prev is not None:
-                    Ht[rows3, :, 3 * self.prev_row + c] += prev[:, :, c]
-            if d_theta is not None:
-                Ht[:, :, 3 * self.A + self.D:] = d_theta * w[:, :, None]
+            Ht = np.zeros((len(e), 3, self.n_theta))
+            Ht[:, :, :self.n_action] = Hx * w[:, :, None]
+            if Hls is not None:
+                Ht[:, :, self.n_action + self.D:] = Hls * w[:, :, None]
         return ae, [Ha * w[:, :, None], Hb * w[:, :, None], Ht]
+
+    def motion_residual(self, st: State) -> np.ndarray:
+        """(S, 3) motion residual of every segment (body-frame pose difference minus the model's), unwhitened."""
+        return self.action.motion(st.poses, st.action, st.theta, jacobians=False)[0]
 
     def sighting_poses(self, st: State, idx: np.ndarray):
         """Poses of sightings ``idx``: their knots' (a pose every step), or on a coarse layout each knot's pose
         carried over the steps to the sighting (``obs_carry``); with the tangent derivative (n, 3, 3) of each
         with respect to the knot's pose (None at a pose every step)."""
         p = st.poses[self.obs_knot[idx]]
-        if self.obs_shift is None:
+        if self.obs_carry is None:
             return p, None
         d = self.obs_carry[idx]
         out = G.retract_poses(p, d)                       # the displacement taken in the knot's body frame
@@ -229,11 +238,12 @@ class Problem:
             Tr = Tb = None
             if jacobians and parameters:
                 Tr, Tb = np.zeros((n_r, n_t)), np.zeros((n_b, n_t))
-                Tr[:, 3 * self.A:3 * self.A + self.D] = Jr[1][:, 0]
-            if self.obs_shift is not None:
+                Tr[:, self.n_action:self.n_action + self.D] = Jr[1][:, 0]
+            if self.obs_carry is not None:
                 Hr, Hb = np.einsum("ni,nij->nj", Hr, Jpr), np.einsum("ni,nij->nj", Hb, Jpb)
             return er[:, 0], eb[:, 0], Hr, Hb, Tr, Tb
-        ctx = self.sensor_context(st)
+        v, dv = self.action.sighting_velocity(st.poses, st.action, st.theta)
+        ctx = {"t": self.log.obs_t - self.log.t[0], "landmark": self.obs_lm, "pan": self.pan, "velocity": v}
         ls_eff = [s for e, s in self.sensor_effects if not e.noise_only]
         uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)
         (er, Jr), (eb, Jb) = factors.effect_sighting.error(
@@ -244,16 +254,15 @@ class Problem:
             return er, eb, None, None, None, None
         Tr = Tb = None
         if parameters:
-            vel_row = self.lay.seg_action[np.clip(self.log.obs_step - 1, 0, self.lay.n_poses - 2)]
+            na, D = self.n_action, self.D
 
             def columns(J, idx):
                 out = np.zeros((len(idx), n_t))
-                rows_n = np.arange(len(idx))
-                for c in range(3):          # the velocity the latency uses is the table's (effects aside)
-                    out[rows_n, 3 * vel_row[idx] + c] += J["velocity"][:, c]
-                out[:, 3 * self.A:3 * self.A + self.D] = J["poly"]
+                # the velocity a latency uses is the action model's (effects aside)
+                out[:, :na] = np.einsum("nc,nck->nk", J["velocity"], dv[idx])
+                out[:, na:na + D] = J["poly"]
                 if J["theta"] is not None:
-                    out[:, 3 * self.A + self.D:] = J["theta"]
+                    out[:, na + D:] = J["theta"]
                 return out
 
             Tr, Tb = columns(Jr, self.r_idx), columns(Jb, self.b_idx)
@@ -278,9 +287,8 @@ class Problem:
             gb = (fb / self.bearing_sigma)[:, None]
             rJ = [Jpr * gr, None if Tr is None else Tr * gr]
             bJ, bJt = Jpb * gb, None if Tb is None else Tb * gb
-        pj = np.concatenate([np.full(3 * self.A, 1 / G.VELOCITY_PRIOR_SIGMA), np.full(self.D, 1 / G.POLY_PRIOR_SIGMA),
-                             1 / self.prior_sigma])
-        pe = (self.pack(st) - np.concatenate([np.zeros(3 * self.A + self.D), self.prior_mean])) * pj
+        pj = 1 / self.prior_sigma
+        pe = (self.pack(st) - self.prior_mean) * pj
         P0 = st.poses[0, 2]
         he = np.zeros(0) if self.anchor is None else np.array([wrap(P0 - self.anchor) / G.ANCHOR_SIGMA])
         knot = self.obs_knot[self.s_idx]
@@ -362,21 +370,27 @@ class Problem:
             dth = dth if len(dth) else None
         poses = G.retract_poses(st.poses, d)
         if dth is None:
-            return State(poses, st.velocities, st.poly, st.theta)
+            return State(poses, st.action, st.poly, st.theta)
         x = self.pack(st) + dth
+        na, D = self.n_action, self.D
         theta = st.theta.copy()
-        theta[self.ls_index] = x[3 * self.A + self.D:]
-        return State(poses, x[:3 * self.A].reshape(-1, 3), x[3 * self.A:3 * self.A + self.D], theta)
+        theta[self.ls_index] = x[na + D:]
+        return State(poses, x[:na].reshape(self.action.shape), x[na:na + D], theta)
 
     def keys_dims(self) -> list[tuple[int, int]]:
         return [(X(i), 3) for i in range(self.lay.n_poses)] + [(THETA, self.n_theta)]
 
-    def jacobian(self, st: State):
-        """Whitened sparse Jacobian (rows: action x/y/theta interleaved, reading, bearing, priors, anchor), the
-        residual, and the row groups of each channel (for the noise step's hat traces)."""
-        r = self.rows(st)
-        K, n_t = self.lay.n_poses, self.n_theta
+    def jacobian(self, st: State, poses_only: bool = False):
+        """Whitened sparse Jacobian (rows: action x/y/theta interleaved, reading, bearing, priors, anchor,
+        standoff), the residual, and the row groups of each channel (for the noise step's hat traces);
+        ``poses_only``: the parameters' columns and prior rows left out (parameters held)."""
+        r = self.rows(st, parameters=not poses_only)
+        K, n_t = self.lay.n_poses, (0 if poses_only else self.n_theta)
         S = K - 1
+        if poses_only:
+            r.action_J[2] = np.zeros((S, 3, 0))
+            r.reading_J[1], r.bearing_Jt = np.zeros((len(r.reading_e), 0)), np.zeros((len(r.bearing_e), 0))
+            r.prior_e, r.prior_J = np.zeros(0), np.zeros(0)
         n_r, n_b = len(r.reading_e), len(r.bearing_e)
         Ha, Hb, Ht = r.action_J
         seg = np.arange(S)
@@ -410,6 +424,12 @@ class Problem:
                   "turn": np.arange(2, ro, 3), "reading": ro + np.arange(n_r),
                   "bearing": ro + n_r + np.arange(n_b)}
         return A, e, groups
+
+    def set_aside(self, model: Model) -> int:
+        """Sightings of a channel ``model`` measures that the gate set aside (gross outliers)."""
+        log = self.log
+        return int(np.sum(self.obs_mask & ((np.isfinite(log.obs_reading) & ~self.r_sel & model.has("reading"))
+                                           | (np.isfinite(log.obs_bearing) & ~self.b_sel & model.has("bearing")))))
 
     # ------------------------------------------------------------------ noise
     def outlier_fraction(self, theta: np.ndarray) -> float:

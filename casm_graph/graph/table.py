@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import C, M, V, X
+from gtsam.symbol_shorthand import C, V, X
 
 import factors
 from casm_graph.graph import robust
@@ -155,20 +155,6 @@ def retract_poses(poses: np.ndarray, delta) -> np.ndarray:
     c, s = np.cos(th), np.sin(th)
     return np.column_stack([poses[:, 0] + c * d[:, 0] - s * d[:, 1], poses[:, 1] + s * d[:, 0] + c * d[:, 1],
                             wrap(th + d[:, 2])])
-
-
-def add_sightings(g: gtsam.GaussianFactorGraph, knot, Jp, Jc, e, poses_only: bool, Jm=None) -> None:
-    """Linearised reading and bearing rows as one Jacobian factor per knot (rows sorted by knot); ``Jm``, when
-    given, their columns on the model vector M(0) (a continuous log's command map and effect parameters)."""
-    cuts = np.flatnonzero(np.diff(knot)) + 1
-    for s0, s1 in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(knot)]])):
-        noise = gtsam.noiseModel.Unit.Create(int(s1 - s0))
-        if poses_only:
-            g.add(X(int(knot[s0])), Jp[s0:s1], -e[s0:s1], noise)
-        elif Jm is None:
-            g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], -e[s0:s1], noise)
-        else:
-            g.add(X(int(knot[s0])), Jp[s0:s1], C(0), Jc[s0:s1], M(0), Jm[s0:s1], -e[s0:s1], noise)
 
 
 def dead_reckon(log: Log, model: Model, start: np.ndarray) -> np.ndarray:

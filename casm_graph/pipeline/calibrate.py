@@ -42,16 +42,16 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     ef = effect_fit.fit(log, fit.model, fit.poses, effects, seed=seed, obs_mask=keep,
                         on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
     cov_p, cov_t = augmented.marginals(ef.problem, ef.state)
-    A, D = ef.problem.A, ef.problem.D
+    na, D = ef.problem.n_action, ef.problem.D
     sd = np.sqrt(np.clip(np.diag(cov_t), 0, None))
     effect_std = {}
     for e, s in zip(ef.effects, ef.problem.slices):
         if not e.noise_only:
-            cols = [3 * A + D + int(np.flatnonzero(ef.problem.ls_index == i)[0]) for i in range(s.start, s.stop)]
+            cols = [na + D + int(np.flatnonzero(ef.problem.ls_index == i)[0]) for i in range(s.start, s.stop)]
             effect_std[e.name] = {p: float(sd[c]) for p, c in zip(e.params, cols)}
     pose_std = world_std(ef.poses, np.sqrt(np.einsum("kii->ki", cov_p)), cov_p[:, :2, :2])
-    model = ef.model.with_(velocity_std=sd[:3 * A].reshape(-1, 3), reading_poly_std=sd[3 * A:3 * A + D],
-                           reading_poly_cov=cov_t[3 * A:3 * A + D, 3 * A:3 * A + D],
+    model = ef.model.with_(velocity_std=sd[:na].reshape(-1, 3), reading_poly_std=sd[na:na + D],
+                           reading_poly_cov=cov_t[na:na + D, na:na + D],
                            fit={**fit.model.fit, "iterations": fit.model.fit.get("iterations", 0) + ef.iterations,
                                 "seconds": round(fit.model.fit.get("seconds", 0) + time.perf_counter() - t0, 3),
                                 "log_likelihood": ef.log_likelihood, "effects_std": effect_std})

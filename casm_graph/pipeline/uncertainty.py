@@ -18,13 +18,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from casm_graph.analysis import posterior as P
-from casm_graph.analysis.marginal_likelihood import (
-    ContinuousMarginalLikelihood,
-    MarginalLikelihood,
-    NoiseLikelihood,
-    continuous_likelihood,
-    likelihood,
-)
+from casm_graph.analysis.marginal_likelihood import NoiseLikelihood, continuous_likelihood, likelihood
 from casm_graph.fit import continuous
 from casm_graph.fit.calibration import Calibration, read_truth_model
 from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
@@ -160,49 +154,29 @@ def mixed_marginals(ml: NoiseLikelihood, samples: np.ndarray, draws: int = P.Sam
     return shifts.mean(axis=0), cov
 
 
-def table_model(model: Model, ml: MarginalLikelihood, x_med: np.ndarray, shift: np.ndarray, cov: np.ndarray) -> Model:
-    """The action-table model at noise levels ``x_med``, table, polynomial and effects at their posterior mean."""
+def posterior_model(model: Model, ml: NoiseLikelihood, x_med: np.ndarray, shift: np.ndarray, cov: np.ndarray) -> Model:
+    """``model`` at noise levels ``x_med``, its action model, polynomial and effects at their posterior mean with
+    their std (the polynomial's only where the log measures readings). The parameter vector is the graph's:
+    the action part's parameters, the polynomial, the least-squares effect parameters."""
     pb, st = ml.problem, ml.state
-    A, D = pb.A, pb.D
+    na, D = pb.n_action, pb.D
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    sr, sb, mot, th = ml._split(x_med)
-    effects = dict(model.effects)
-    th = th.copy()
-    th[pb.ls_index] += shift[3 * A + D:]
-    for e, s in zip(pb.effects, pb.slices):
-        effects[e.name] = e.describe(th[s])
-    d = ml.reading_distances()
-    return model.with_(velocities=st.velocities + shift[:3 * A].reshape(-1, 3), velocity_std=sd[:3 * A].reshape(-1, 3),
-                       reading_poly=st.poly + shift[3 * A:3 * A + D], reading_poly_std=sd[3 * A:3 * A + D],
-                       reading_poly_cov=cov[3 * A:3 * A + D, 3 * A:3 * A + D], reading_sigma=sr, bearing_sigma=sb,
-                       motion_noise=mot, effects=effects,
-                       distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range,
-                       fit={**model.fit, "uncertainty": "noise levels: posterior median; table and polynomial: "
-                                                        "Laplace marginals averaged over the noise posterior"})
-
-
-def command_model(model: Model, ml: ContinuousMarginalLikelihood, x_med: np.ndarray, shift: np.ndarray,
-                  cov: np.ndarray) -> Model:
-    """The command-map model at noise levels ``x_med``, map and polynomial at their posterior mean with their
-    std (the polynomial's std and covariance only where the log measures readings)."""
-    st, pb = ml.state, ml.problem
-    n, m = pb.n_params, pb.n_m          # M(0): the command map, then the hooked effects' parameters
-    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    sr, sb, mot = ml._split(x_med)
+    sr, sb, mot, theta = ml._split(x_med)
+    theta = theta.copy()
+    theta[pb.ls_index] += shift[na + D:]
+    effects = {**model.effects, **{e.name: e.describe(theta[s]) for e, s in zip(pb.effects, pb.slices)}}
     kw = {}
     if model.has("reading"):
         d = ml.reading_distances()
-        kw = dict(reading_poly=st.poly + shift[m:], reading_poly_std=sd[m:], reading_poly_cov=cov[m:, m:],
+        kw = dict(reading_poly=st.poly + shift[na:na + D], reading_poly_std=sd[na:na + D],
+                  reading_poly_cov=cov[na:na + D, na:na + D],
                   distance_range=(float(d.min()), float(d.max())) if len(d) else model.distance_range)
-    theta = st.theta.copy()
-    theta[pb.ls_index] += shift[n:m]
-    effects = {**model.effects, **{e.name: e.describe(theta[s]) for e, s in zip(pb.effects, pb.slices)}}
-    effects_std = {**model.fit.get("effects_std", {}), **pb.effects_std(sd[:m])}
-    return model.with_(command=model.command.with_params(st.params + shift[:n], sd[:n]), reading_sigma=sr,
-                       bearing_sigma=sb, motion_noise=mot, effects=effects, **kw,
-                       fit={**model.fit, "effects_std": effects_std,
-                            "uncertainty": "noise levels: posterior median; command map, effects and "
-                                           "polynomial: Laplace marginals averaged over the noise posterior"})
+    effects_std = {**model.fit.get("effects_std", {}), **pb.effects_std(sd)}
+    new = pb.action.with_params(model, np.ravel(st.action) + shift[:na], sd[:na])
+    return new.with_(reading_sigma=sr, bearing_sigma=sb, motion_noise=mot, effects=effects, **kw,
+                     fit={**model.fit, **({"effects_std": effects_std} if effects_std else {}),
+                          "uncertainty": "noise levels: posterior median; action model, effects and polynomial: "
+                                         "Laplace marginals averaged over the noise posterior"})
 
 
 def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] = (),
@@ -228,8 +202,7 @@ def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] =
             progress.stage("marginals", None)
         x_med = np.array([summ[n]["median"] for n in ml.names])
         shift, cov = mixed_marginals(ml, ch.samples, draws=o.draws, seed=seed)
-    new = (table_model(model, ml, x_med, shift, cov) if model.command is None
-           else command_model(model, ml, x_med, shift, cov))
+    new = posterior_model(model, ml, x_med, shift, cov)
     return Uncertainty(log, new, ml, ch, summ, pri, cov, truth, time.perf_counter() - t0, o)
 
 

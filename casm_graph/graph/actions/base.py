@@ -1,0 +1,83 @@
+"""What the graph needs of an action model: its parameters, the motion factor's rows, and the velocity a sighting
+sees. One file per kind (``table``: discrete actions; ``command_poly``: continuous commands through a polynomial
+map); :class:`casm_graph.graph.problem.Problem` takes any of them, so "table or continuous?" is answered here only."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from casm_graph.io.log import Log
+from casm_graph.models.model import Model
+
+
+@dataclass(frozen=True)
+class NoiseRules:
+    """What the noise step may assume of the motion noise of an action model's robot."""
+
+    huber_efficiency: bool = True          # the sightings' Huber-weighted sums corrected by the weighting's efficiency
+    lateral_at_most_forward: bool = False  # wheels do not slip sideways more than they slip forward
+    floor: float = 0.0                     # m, rad per step: below this a level is numerical, not physical
+
+    def apply(self, motion: np.ndarray) -> np.ndarray:
+        """The (forward, lateral, turn) levels as these rules allow them."""
+        m = np.asarray(motion, float).copy()
+        if self.lateral_at_most_forward:
+            m[1] = min(m[1], m[0])
+        return np.maximum(m, self.floor)
+
+
+class ActionPart:
+    """The action model's side of one log's graph on a layout ``lay`` (pose knots, segments, ``obs_knot``).
+
+    ``n`` parameters, held in the problem's parameter vector first (then the curve, then the effects'), as an
+    array of ``shape``. ``motion_effects`` are the (effect, slice) pairs acting on velocity, ``ls_index`` the
+    effect parameters least squares moves (the problem's).
+    """
+
+    name = ""
+    noise_rules = NoiseRules()
+    layout_type: type            # the layout a graph with this part has (its knots and segments)
+    n: int
+    shape: tuple
+
+    def __init__(self, log: Log, model: Model, lay, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
+        self.log, self.lay = log, lay
+        self.motion_effects, self.ls_index = list(motion_effects), np.asarray(ls_index, int)
+
+    def params(self, model: Model) -> np.ndarray:
+        """The model's action parameters (array of ``shape``)."""
+        raise NotImplementedError
+
+    def with_params(self, model: Model, x: np.ndarray, std: np.ndarray | None = None) -> Model:
+        """``model`` with action parameters ``x`` (and their std when given)."""
+        raise NotImplementedError
+
+    def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, sigma) of the weak prior on the flattened parameters."""
+        raise NotImplementedError
+
+    def motion_sigma(self, model: Model, poses: np.ndarray | None) -> np.ndarray:
+        """(S, 3) motion noise of every segment (``poses``: the knots, for noise that depends on place)."""
+        raise NotImplementedError
+
+    def motion(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray, jacobians: bool = True,
+               parameters: bool = True):
+        """Unwhitened motion residual (S, 3) and [Ha, Hb] (S, 3, 3), H over the parameters (S, 3, n) and over the
+        effects' least-squares parameters (S, 3, len(ls_index)) or None (``parameters`` False: both None)."""
+        raise NotImplementedError
+
+    def sighting_velocity(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray):
+        """(N, 3) body velocity each sighting's sensor hooks read (a latency's), and its derivative (N, 3, n) with
+        respect to the parameters (effects aside)."""
+        raise NotImplementedError
+
+    def motion_noise_step(self, model: Model, problem, e: np.ndarray, A, groups: dict, lu) -> Model:
+        """``model`` with the parameters of a motion-noise effect the part places (regions of the floor)
+        re-estimated from the whitened residual ``e`` of Jacobian ``A`` (rows ``groups``, solver ``lu``)."""
+        return model
+
+    def carry(self, model: Model) -> np.ndarray | None:
+        """(N, 3) displacement in the knot's body frame from each sighting's knot to its own step, None when every
+        sighting has its own knot."""
+        return None

@@ -1,0 +1,225 @@
+"""Continuous commands: forward and turn velocity as polynomials of the commands ``v, w``
+(:mod:`casm_graph.models.command_model`), their coefficients the parameters.
+
+Knots every ``knot_dt`` seconds and at every sighting's step; consecutive knots are joined by one
+:mod:`factors.command` factor over the command steps between them (padded to a common length). Motion
+effects act on every step's velocity, their derivatives central differences of the vectorised
+forward pass (few parameters). A latency's velocity is the map's mean over the delay before the
+sighting. regional_motion_noise sets each segment's forward and turn sigmas from the region its
+start knot is in.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import factors
+from casm_graph.graph import noise
+from casm_graph.graph.actions.base import ActionPart, NoiseRules
+from casm_graph.graph.augmented import motion_function
+from casm_graph.io.log import Log, wrap
+from casm_graph.models.command_model import for_commands
+from casm_graph.models.effects import regional_motion_noise as RMN
+from casm_graph.models.model import Model
+
+PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the
+                             # command scale
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Pose knots and the command steps (padded to a common length) between consecutive knots."""
+
+    knots: np.ndarray        # (K,) pose-step index of each knot
+    seg_idx: np.ndarray      # (K-1, kmax) command step of each slot (0 in padding)
+    seg_dt: np.ndarray       # (K-1, kmax) step length (0 in padding)
+    obs_knot: np.ndarray     # (N,) knot of each observation
+
+    @property
+    def n_poses(self) -> int:
+        return len(self.knots)
+
+    @property
+    def seg_time(self) -> np.ndarray:
+        return self.seg_dt.sum(axis=1)
+
+
+def layout(log: Log, knot_dt: float) -> Layout:
+    """Knots every ``knot_dt`` seconds, at every observation's step, and at the first and last pose."""
+    tp = log.pose_times
+    T = log.steps
+    regular = np.searchsorted(tp, np.arange(tp[0], tp[-1], knot_dt))
+    knots = np.unique(np.concatenate([regular, log.obs_step, [0, T]])).astype(int)
+    n = np.diff(knots)
+    kmax = int(n.max())
+    slot = np.arange(kmax)[None, :]
+    mask = slot < n[:, None]
+    idx = np.where(mask, knots[:-1, None] + slot, 0)
+    dt = np.where(mask, log.dt[idx], 0.0)
+    return Layout(knots, idx, dt, np.searchsorted(knots, log.obs_step))
+
+
+def velocity_window(model: Model, effects) -> float:
+    """Seconds before a sighting over which the sensor hooks' velocity is averaged: the value of the parameter an
+    effect names as its ``velocity_window`` (a latency's delay), 0 without one."""
+    return float(sum(abs(model.effects.get(e.name, {}).get(e.velocity_window, 0.0))
+                     for e in effects if getattr(e, "velocity_window", "")))
+
+
+def sighting_means(log: Log, rows: np.ndarray, window: float) -> np.ndarray:
+    """(N, c) mean of the per-step ``rows`` (T, c) over the ``window`` seconds before each sighting, and at least
+    over the step that ends at it: the displacement a delayed image missed, divided by the delay, when the
+    velocity changes within the delay."""
+    step = np.clip(log.obs_step - 1, 0, log.steps - 1)
+    out = np.asarray(rows, float)[step]
+    tp = log.pose_times
+    t1 = tp[log.obs_step]
+    t0 = np.maximum(t1 - window, tp[0])
+    wide = (t1 - t0 > log.dt[step]) & (log.obs_step > 0)
+    if wide.any():
+        cum = np.vstack([np.zeros(rows.shape[1]), np.cumsum(rows * log.dt[:, None], axis=0)])
+        for j in range(rows.shape[1]):
+            out[wide, j] = (np.interp(t1[wide], tp, cum[:, j]) - np.interp(t0[wide], tp, cum[:, j])) / (t1 - t0)[wide]
+    return out
+
+
+class CommandPoly(ActionPart):
+    """The command map's coefficients in a graph on a :class:`Layout`."""
+
+    name = "command_poly"
+    layout_type = Layout
+    # the sightings beyond the gate are already out of the problem; the Huber-weighted sums are taken as they are
+    # (the table graph's efficiency correction moved MRCLAM robot 1's fit: BENCHMARKS.md, bad data). A floor of
+    # 1e-4 m or rad per step: a robot that never slips sideways drove the lateral level to 1e-13, and the
+    # information matrix singular.
+    noise_rules = NoiseRules(huber_efficiency=False, lateral_at_most_forward=True, floor=1e-4)
+
+    def __init__(self, log, model: Model, lay: Layout, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
+        super().__init__(log, model, lay, motion_effects, ls_index, effects)
+        cm = model.command
+        bv, bw = cm.basis(log.controls, log.dt)
+        self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
+        self.nv = bv.shape[1]
+        self.n = len(cm.params)
+        self.shape = (self.n,)
+        self.seg_region = None
+        if self.motion_effects:          # step context, one row per slot of the padded segments
+            c = log.controls
+            change = np.concatenate([[True], np.any(c[1:] != c[:-1], axis=1)])
+            run0 = np.maximum.accumulate(np.where(change, np.arange(len(c)), 0))
+            prev = np.maximum(run0 - 1, 0)
+            t0 = log.pose_times[:-1] - log.pose_times[0]
+            idx = lay.seg_idx
+            self.m_ctx = {"t": t0[idx].ravel(), "since": (t0 - t0[run0])[idx].ravel(),
+                          "dt": np.where(lay.seg_dt > 0, lay.seg_dt, float(np.median(log.dt))).ravel()}
+            self.Bv_prev, self.Bw_prev = bv[prev][idx], bw[prev][idx]
+        both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
+        self.Bv_obs, self.Bw_obs = both[:, :self.nv], both[:, self.nv:]
+
+    def params(self, model: Model) -> np.ndarray:
+        return model.command.params.copy()
+
+    def with_params(self, model: Model, x: np.ndarray, std: np.ndarray | None = None) -> Model:
+        return model.with_(command=model.command.with_params(x, std))
+
+    def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
+        cm = model.command
+        nominal = for_commands(self.log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
+        return nominal.params, PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
+
+    def motion_sigma(self, model: Model, poses: np.ndarray | None) -> np.ndarray:
+        lay, log = self.lay, self.log
+        ref = float(np.median(log.dt))
+        sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None]
+        if RMN.RegionalMotionNoise.name in model.effects:
+            if poses is None:
+                raise ValueError("regional_motion_noise: the problem needs the knot poses to place its segments")
+            regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
+            self.seg_region = regions.of(np.asarray(poses)[:-1, :2])
+            v = model.command.velocities(log.controls, log.dt)[lay.seg_idx]
+            self.seg_r = np.sum(np.abs(v[..., 0]) * lay.seg_dt, axis=1)
+            self.seg_turn = np.sum(np.abs(v[..., 2]) * lay.seg_dt, axis=1)
+            vr, vt = RMN.variances(k[self.seg_region], self.seg_r, self.seg_turn)
+            sigma[:, 0], sigma[:, 2] = np.sqrt(vr), np.sqrt(vt)
+        return sigma
+
+    def motion_noise_step(self, model: Model, problem, e: np.ndarray, A, groups: dict, lu) -> Model:
+        """regional_motion_noise's (k_r, k_t, k_d) of each region refitted by maximum likelihood to its segments'
+        expected squared forward and turn errors, an EM step: E[eps^2] = sigma^2 (w^2 + h), w the whitened
+        residual and h the leverage of its row (the hat matrix's diagonal, exact). A region with fewer than
+        ``MIN_SEGMENTS`` segments keeps its k's and is recorded as undetermined (its count)."""
+        if self.seg_region is None:
+            return model
+        regions, k = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])
+        n = len(self.seg_region)
+        w = e[:3 * n].reshape(-1, 3)
+        h = np.clip(noise.leverages(A, np.concatenate([groups["forward"], groups["turn"]]), lu=lu).reshape(2, n).T,
+                    0.0, 1.0)
+        e2 = problem.motion_sigma[:, [0, 2]] ** 2 * (w[:, [0, 2]] ** 2 + h)
+        k_new = k.copy()
+        for g in range(regions.count):
+            sel = self.seg_region == g
+            if sel.sum() >= RMN.MIN_SEGMENTS:
+                k_new[g] = RMN.estimate(self.seg_r[sel], self.seg_turn[sel], e2[sel, 0], e2[sel, 1], k[g])
+        counts = np.bincount(self.seg_region, minlength=regions.count)
+        return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k_new, counts)})
+
+    def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
+        """(..., 3) body velocity of basis rows under map coefficients ``p`` (no sideways motion)."""
+        v = Bv @ p[:self.nv]
+        return np.stack([v, np.zeros_like(v), Bw @ p[self.nv:self.n]], axis=-1)
+
+    def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """(S, 3) displacement of every segment under map ``p`` and the motion effects at ``theta``, each step's
+        context pose placed along the segment by the map alone from the segment's ``start`` pose."""
+        v0 = self._velocities(p, self.Bv, self.Bw)
+        _, rel = factors.command.integrate(v0, self.lay.seg_dt)
+        c, s = np.cos(start[:, 2])[:, None], np.sin(start[:, 2])[:, None]
+        pose = np.stack([start[:, 0:1] + c * rel[..., 0] - s * rel[..., 1],
+                         start[:, 1:2] + s * rel[..., 0] + c * rel[..., 1], start[:, 2:3] + rel[..., 2]], axis=-1)
+        fn = motion_function(self.motion_effects, self.m_ctx, theta)
+        v = fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.Bw_prev).reshape(-1, 3),
+               pose.reshape(-1, 3)).reshape(v0.shape)
+        return factors.command.integrate(v, self.lay.seg_dt)[0]
+
+    def motion(self, poses, x, theta, jacobians=True, parameters=True):
+        P = poses
+        if not self.motion_effects:
+            e, (Ha, Hb, Hx) = factors.command.error(P[:-1], P[1:], x, self.Bv, self.Bw, self.lay.seg_dt)
+            return e, [Ha, Hb], (Hx if parameters else None), None
+        rel, Ha, Hb = factors.command.relative(P[:-1], P[1:])
+        d = self._segment_motion(x, theta, P[:-1])
+        e = np.column_stack([rel[:, :2] - d[:, :2], wrap(rel[:, 2] - d[:, 2])])
+        if not jacobians:
+            return e, [Ha, Hb], None, None
+        h = factors.effect_motion.STEP
+        for c in range(3):
+            dp = (self._segment_motion(x, theta, factors.effect_motion.body_step(P[:-1], c, h))
+                  - self._segment_motion(x, theta, factors.effect_motion.body_step(P[:-1], c, -h)))
+            Ha[:, :, c] -= dp / (2 * h)
+        if not parameters:
+            return e, [Ha, Hb], None, None
+
+        def column(p, th, arr, j):
+            step = h * max(1.0, abs(arr[j]))
+            arr[j] += step
+            plus = self._segment_motion(p, th, P[:-1])
+            arr[j] -= 2 * step
+            minus = self._segment_motion(p, th, P[:-1])
+            arr[j] += step
+            return -(plus - minus) / (2 * step)
+
+        p, th = np.array(x, float), np.array(theta, float)
+        Hx = np.stack([column(p, th, p, j) for j in range(self.n)], axis=2)
+        Ht = np.zeros((len(e), 3, len(self.ls_index)))
+        for j, col in enumerate(self.ls_index):
+            if any(s.start <= col < s.stop for _, s in self.motion_effects):
+                Ht[:, :, j] = column(p, th, th, int(col))
+        return e, [Ha, Hb], Hx, Ht
+
+    def sighting_velocity(self, poses, x, theta):
+        v = self._velocities(np.asarray(x, float), self.Bv_obs, self.Bw_obs)
+        dv = np.zeros((len(v), 3, self.n))
+        dv[:, 0, :self.nv], dv[:, 2, self.nv:] = self.Bv_obs, self.Bw_obs
+        return v, dv

@@ -1,0 +1,99 @@
+"""Discrete actions: one (vx, vy, w) row per action id, the paper's velocity table.
+
+Segments run one action each (knots at every change); the motion effects' hooks see the segment's row,
+the row before the action changed, and the segment's start pose, and chain their derivatives
+(:mod:`factors.effect_motion`). On a coarse layout a sighting a few steps from its knot is seen from the
+knot's pose carried there by the table's velocity (held at the problem's start, like the noise levels).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+import factors
+from casm_graph.graph import table as G
+from casm_graph.graph.augmented import motion_function
+from casm_graph.graph.actions.base import ActionPart
+from casm_graph.models.model import Model
+
+
+class TableActions(ActionPart):
+    """The velocity table's rows in a graph on a :class:`casm_graph.graph.table.Layout`."""
+
+    name = "table"
+    layout_type = G.Layout
+
+    def __init__(self, log, model: Model, lay, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
+        super().__init__(log, model, lay, motion_effects, ls_index, effects)
+        self.A = lay.n_actions
+        self.n, self.shape = 3 * self.A, (self.A, 3)
+        if len(effects) and np.any(lay.seg_steps != 1):
+            raise ValueError("effects act step by step: their graph needs a pose at every step")
+        act = lay.seg_action
+        change = np.concatenate([[True], act[1:] != act[:-1]])
+        start_idx = np.maximum.accumulate(np.where(change, np.arange(len(act)), 0))
+        self.prev_row = np.where(start_idx > 0, act[np.maximum(start_idx - 1, 0)], act)
+        t_rel = log.t[lay.knots[:-1]] - log.t[0]
+        self.m_ctx = {"t": t_rel, "since": t_rel - t_rel[start_idx], "dt": lay.seg_dt * lay.seg_steps}
+
+    def params(self, model: Model) -> np.ndarray:
+        return np.asarray(model.velocities, float).copy()
+
+    def with_params(self, model: Model, x: np.ndarray, std: np.ndarray | None = None) -> Model:
+        kw = {} if std is None else {"velocity_std": np.asarray(std, float).reshape(self.shape)}
+        return model.with_(velocities=np.asarray(x, float).reshape(self.shape), **kw)
+
+    def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(self.n), np.full(self.n, G.VELOCITY_PRIOR_SIGMA)
+
+    def motion_sigma(self, model: Model, poses=None) -> np.ndarray:
+        return np.asarray(model.motion_noise, float)[None, :] * np.sqrt(self.lay.seg_steps)[:, None]
+
+    def _fn(self, theta):
+        return motion_function(self.motion_effects, self.m_ctx, theta)
+
+    def step_velocity(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """(S, 3) velocity each segment runs under the table and the motion effects."""
+        V = np.asarray(x).reshape(self.shape)
+        return factors.effect_motion.velocity(self._fn(theta), V[self.lay.seg_action], V[self.prev_row], poses[:-1])
+
+    def motion(self, poses, x, theta, jacobians=True, parameters=True):
+        lay, V = self.lay, np.asarray(x).reshape(self.shape)
+        if self.motion_effects:
+            e, (Ha, Hb, _), dv = factors.effect_motion.error(
+                self._fn(theta), poses, V, lay.seg_action, self.prev_row, self.log.dt, theta, self.ls_index,
+                [s for _, s in self.motion_effects])
+            own, prev, Ha, d_theta = dv["own"], dv["prev"], Ha + dv["pose"], dv["theta"]
+        else:
+            e, (Ha, Hb, own) = factors.action.error(poses[:-1], poses[1:], V[lay.seg_action], lay.seg_steps,
+                                                    lay.seg_dt)
+            prev, d_theta = None, None
+        if not (jacobians and parameters):
+            return e, [Ha, Hb], None, None
+        S = len(e)
+        Hx = np.zeros((S, 3, self.n))
+        rows = np.arange(S)
+        for c in range(3):                 # one row per step in each statement: no repeated index, no add.at
+            Hx[rows, :, 3 * lay.seg_action + c] += own[:, :, c]
+            if prev is not None:
+                Hx[rows, :, 3 * self.prev_row + c] += prev[:, :, c]
+        return e, [Ha, Hb], Hx, d_theta
+
+    def sighting_velocity(self, poses, x, theta):
+        """The velocity of the step before each sighting; its derivative is the table row's (effects aside)."""
+        v = self.step_velocity(poses, x, theta)
+        step = np.clip(self.log.obs_step - 1, 0, len(v) - 1)
+        row = self.lay.seg_action[step]
+        dv = np.zeros((len(step), 3, self.n))
+        for c in range(3):
+            dv[np.arange(len(step)), c, 3 * row + c] = 1.0
+        return v[step], dv
+
+    def carry(self, model: Model) -> np.ndarray | None:
+        lay = self.lay
+        shift = self.log.obs_step - lay.knots[lay.obs_knot]
+        if not np.any(shift):
+            return None
+        seg = np.clip(np.where(shift >= 0, lay.obs_knot, lay.obs_knot - 1), 0, lay.n_poses - 2)
+        sign = np.where(shift < 0, -1.0, 1.0)
+        v = np.asarray(model.velocities, float)[lay.seg_action[seg]] * sign[:, None]
+        return factors.action.displacement(v, np.abs(shift), lay.seg_dt[seg])[0]
