@@ -2,6 +2,7 @@
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/one_channel.py [--seeds 5] [--minutes 10] [--json one_channel.json]
     OPENBLAS_NUM_THREADS=1 python benchmarks/one_channel.py --quick          # smoke run: 2 seeds, 6 minutes
+    OPENBLAS_NUM_THREADS=1 python benchmarks/one_channel.py --uncertainty --modes both bearing range
 
 For each seed s in 0..N-1 the floor simulator (``cg.simulate("floor", ...)``) writes one log per
 sensor mode with the same seed, so the same trajectory, commands and landmarks: ``both`` (range and
@@ -23,7 +24,9 @@ public API, ``cg.calibrate(log, seed=s)``, and measured against the simulator's 
 * reading sigma (m) and bearing sigma (rad), learned, beside the truth (none where the channel is not
   measured, ``cal.model.has(...)`` false); on ``range-tof`` the NLOS tail is not part of the true
   sigma (0.05 m), so the learned one there says how the tail was absorbed;
-* seconds: wall time of ``cg.calibrate``.
+* seconds: wall time of ``cg.calibrate``;
+* with ``--uncertainty``: ``cg.uncertainty(log, cal, seed=s)`` (emcee at its defaults) and whether each sampled
+  sensor sigma's 90 % interval holds the simulator's, printed per mode after the medians.
 
 One row per (mode, seed), then the median over seeds per mode, both as Markdown on stdout (progress on
 stderr); ``--json PATH`` writes the options, rows and summary. A calibration that raises is recorded
@@ -92,7 +95,17 @@ def measure(log, truth: dict, cal) -> dict:
     return out
 
 
-def trial(mode: str, seed: int, minutes: float, common: dict) -> dict:
+def covered(log, truth: dict, cal, seed: int) -> dict:
+    """Each sampled sensor sigma's 90 % interval and whether it holds the simulator's sigma."""
+    sm = truth["sensor_model"]
+    true = {"reading_sigma": sm["range_sigma"], "bearing_sigma": sm["bearing_sigma"]}
+    post = cg.uncertainty(log, cal, seed=seed)
+    return {n: {"ci90": post.intervals[n]["ci90"], "truth": t,
+                "inside": bool(post.intervals[n]["ci90"][0] <= t <= post.intervals[n]["ci90"][1])}
+            for n, t in true.items() if n in post.intervals}
+
+
+def trial(mode: str, seed: int, minutes: float, common: dict, uncertainty: bool = False) -> dict:
     row = {"mode": mode, "seed": seed, "error": None}
     log, truth = cg.simulate("floor", minutes=minutes, seed=seed, **common, **MODES[mode])
     row["sightings"] = int(len(log.obs_t))
@@ -105,6 +118,8 @@ def trial(mode: str, seed: int, minutes: float, common: dict) -> dict:
     row["seconds"] = time.perf_counter() - t0
     try:
         row.update(measure(log, truth, cal))
+        if uncertainty:
+            row["coverage"] = covered(log, truth, cal, seed)
     except Exception as e:
         row["error"] = f"measuring: {type(e).__name__}: {e}".splitlines()[0]
     return row
@@ -162,6 +177,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-range", type=float, default=15.0, help="m (the floor simulator's default is 5)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 2 seeds, 6 minutes")
     ap.add_argument("--json", default=None, help="also write the options, rows and summary here")
+    ap.add_argument("--uncertainty", action="store_true", help="also run cg.uncertainty and report interval coverage")
     a = ap.parse_args(argv)
     if a.quick:
         a.seeds, a.minutes = 2, 6.0
@@ -178,7 +194,7 @@ def main(argv=None) -> int:
     for seed in range(a.seeds):
         for mode in a.modes:
             print(f"seed {seed} {mode}: simulating and calibrating ...", file=sys.stderr, flush=True)
-            r = trial(mode, seed, a.minutes, common)
+            r = trial(mode, seed, a.minutes, common, a.uncertainty)
             rows.append(r)
             print_row(r)
             print(f"seed {seed} {mode}: {r['seconds']:.1f} s" + (f", error {r['error']}" if r["error"] else
@@ -192,6 +208,19 @@ def main(argv=None) -> int:
         vals = [sigma_cell(s, k) if k in ("reading_sigma", "bearing_sigma") else cell(s[k], f) for k, _, f in COLUMNS]
         print(f"| {s['mode']} | {s['seeds'] - s['failed']}/{s['seeds']} | " + " | ".join(vals)
               + f" | {cell(s['worst_traj_rms'], '.3f')} | {s['bad_trajectory']} |")
+    if a.uncertainty:
+        print("\n90 % intervals of the sensor sigmas holding the simulator's (seeds where the interval missed):\n")
+        print("| mode | reading sigma | bearing sigma |")
+        print("|---|---|---|")
+        for mode in a.modes:
+            cov = [r for r in rows if r["mode"] == mode and r.get("coverage")]
+            cells = []
+            for n in ("reading_sigma", "bearing_sigma"):
+                got = [(r["seed"], r["coverage"][n]) for r in cov if n in r["coverage"]]
+                miss = [f"{sd}: [{c['ci90'][0]:.4f}, {c['ci90'][1]:.4f}]" for sd, c in got if not c["inside"]]
+                cells.append("–" if not got else f"{sum(c['inside'] for _, c in got)} of {len(got)}"
+                             + (f" (seed {'; '.join(miss)})" if miss else ""))
+            print(f"| {mode} | " + " | ".join(cells) + " |")
     print(f"\n(wall time {wall:.0f} s)")
     if a.json:
         Path(a.json).write_text(json.dumps({"options": opts, "wall_seconds": wall, "rows": rows, "summary": summary},
