@@ -3,6 +3,7 @@ import json
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -319,6 +320,37 @@ def test_lookalikes_are_named_with_what_would_separate_them():
     assert [g["effects"] for g in rel] == [["actuator_lag", "camera_latency"]]
     assert "10 % of the best" in " ".join(D.lookalike_words(rel))
     assert all(REGISTRY[n].distinguished_by for n in REGISTRY)      # every catalog effect says what separates it
+
+
+def test_fits_that_change_the_sightings_alike_are_lookalikes():
+    """Beyond the delta BIC margin, a supported runner-up joins the group when one fit reproduces at least half of
+    the other's change to the predicted sightings and it gains at least half as much; a runner-up that changes
+    them otherwise, or gains too little, does not."""
+    rng = np.random.default_rng(0)
+    n = 400
+    base = {"reading": np.zeros(n), "bearing": np.zeros(n), "reading_sigma": 1.0, "bearing_sigma": 0.1}
+    lag = rng.normal(0, 1, 2 * n)
+
+    def pred(change):
+        return {**base, "reading": change[:n], "bearing": 0.1 * change[n:]}
+
+    like = lag * 0.9 + rng.normal(0, 0.3, 2 * n)        # reproduces most of the lag's change
+    other = rng.normal(0, 1, 2 * n)                      # an unrelated change
+    assert D.reproduced_share(base, pred(lag), pred(like)) > 0.8
+    assert abs(D.reproduced_share(base, pred(lag), pred(other))) < 0.3 or D.reproduced_share(
+        base, pred(lag), pred(other)) < 0
+    sep = {n_: REGISTRY[n_].distinguished_by for n_ in ("actuator_lag", "camera_latency")}
+
+    def cands(second, dbic):
+        return [replace(cand("actuator_lag", -1912, 50), prediction=pred(lag)),
+                replace(cand("camera_latency", dbic, 40), prediction=pred(second))]
+
+    g = D.lookalikes(cands(like, -1442), "actuator_lag", sep, base=base)
+    assert [x["effects"] for x in g] == [["actuator_lag", "camera_latency"]]
+    assert g[0]["prediction_share"][1] > 0.8 and "predicted sightings" in g[0]["closer_than"]
+    assert D.lookalikes(cands(like, -700), "actuator_lag", sep, base=base) == []     # gains too little
+    assert D.lookalikes(cands(other, -1442), "actuator_lag", sep, base=base) == []   # changes them otherwise
+    assert D.lookalikes(cands(like, -1442), "actuator_lag", sep) == []               # no base: BIC alone
 
 
 def test_the_evidence_a_verdict_needs_is_an_option():

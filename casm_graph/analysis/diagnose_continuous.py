@@ -25,7 +25,8 @@ from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, best_of_family,
                                            channel_report, chosen_candidates, family_members, family_words, folds,
-                                           lookalike_words, lookalikes, discover, structures, verdict)
+                                           lookalike_words, lookalikes, discover, predicted_sightings, structures,
+                                           verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import Channel, place
@@ -223,13 +224,16 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     cuse = CT.gate(log, full[log.obs_step], model, effects=own)
     start = full[coarse.knots]
     n = CT.residual_rows(log, coarse, cuse)
+    base_prediction = None
     if todo or hooked:        # every candidate scored against one base, settled as they are
-        ll0, _ = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=o.settle_rounds,
-                                           iterations=search.iterations)
+        ll0, _, pb0, st0 = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=o.settle_rounds,
+                                                     iterations=search.iterations)
+        base_prediction = predicted_sightings(pb0, st0)
     for name in todo:
         prof = CT.profile(log, base, name, own, options=search, knot_dt=graph.coarse_knot_dt)
-        ll, _ = CT.settled_log_likelihood(log, coarse, CT.with_effect(model, name, prof.value, prof.order), cuse,
-                                          start, own, rounds=o.settle_rounds, iterations=search.iterations)
+        ll, _, pb, s = CT.settled_log_likelihood(log, coarse, CT.with_effect(model, name, prof.value, prof.order),
+                                                 cuse, start, own, rounds=o.settle_rounds,
+                                                 iterations=search.iterations)
         gain = float(ll - ll0)
         eff = REGISTRY[name]
         (param,) = eff.params
@@ -238,7 +242,8 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
                                heldout_nll_drop=float("nan"), explanation=f"{what} {eff.physics}",
                                delta_log_likelihood=gain,
                                parameters={param: prof.value, **({"order": prof.order} if prof.order > 1 else {})},
-                               heldout_skipped="held-out folds are not run for continuous-command logs"))
+                               heldout_skipped="held-out folds are not run for continuous-command logs",
+                               prediction=predicted_sightings(pb, s)))
         if progress is not None:
             progress.step(1)
     for e in hooked:
@@ -247,13 +252,14 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
             if progress is not None:
                 progress.step(1)
             continue
-        ll, m = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds,
-                                          iterations=search.iterations)
+        ll, m, pb, s = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds,
+                                                 iterations=search.iterations)
         gain = float(ll - ll0)
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
                                parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
-                               heldout_skipped="held-out folds are not run for continuous-command logs"))
+                               heldout_skipped="held-out folds are not run for continuous-command logs",
+                               prediction=predicted_sightings(pb, s)))
         if progress is not None:
             progress.step(1)
     cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
@@ -264,7 +270,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     v, words = verdict(cands, struct, explains, o, last=tuple(e.name for e in hooked if e.mixture))
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
-                       options=o)
+                       options=o, base=base_prediction)
     words += family_words(cands, v) + lookalike_words(alike)
     if cands:
         words.append("On continuous-command logs held-out folds score only the noise candidates (at the base's "

@@ -541,7 +541,8 @@ def residual_rows(log: Log, lay: Layout, use) -> int:
 
 def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=(),
                            rounds: int = 1, tol: float = 1.0, iterations: int = ProfileOptions.iterations):
-    """(log-likelihood with the noise levels concentrated out, model) after settling ``model`` with ``effects``
+    """(log-likelihood with the noise levels concentrated out, model, the graph and its state) after settling
+    ``model`` with ``effects``
     on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
     fixed), so two models compare as a likelihood ratio on the same data. With ``rounds`` > 1 the noise step and
     the second LM repeat until the log-likelihood moves by less than ``tol`` nats (an effect whose parameters move
@@ -561,7 +562,7 @@ def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.n
         last, ll = ll, _concentrated_log_likelihood(problem, st, model)
         if abs(ll - last) < tol:
             break
-    return ll, model
+    return ll, model, problem, st
 
 
 def _group_sums(problem: Problem, st: State) -> dict:
@@ -575,8 +576,7 @@ def _group_sums(problem: Problem, st: State) -> dict:
 def _ml_noise(problem: Problem, st: State, model: Model) -> Model:
     """Every noise level scaled to its maximum-likelihood value at ``st`` (whitened mean square 1)."""
     g = {k: float(np.sqrt(np.mean(v))) for k, v in _group_sums(problem, st).items()}
-    m = np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]]
-    m[1] = min(m[1], m[0])      # as in estimate_noise: lateral noise no larger than forward
+    m = problem.action.noise_rules.apply(np.asarray(model.motion_noise, float) * [g["forward"], g["lateral"], g["turn"]])
     return model.with_(motion_noise=m, reading_sigma=model.reading_sigma * g.get("reading", 1.0),
                        bearing_sigma=model.bearing_sigma * g.get("bearing", 1.0))
 
