@@ -283,6 +283,16 @@ def test_a_camera_latency_named_as_a_lag_comes_with_it_as_a_lookalike(tmp_path):
 
 
 @pytest.mark.science
+def test_a_strong_range_dependent_noise_is_named(tmp_path):
+    """Seed 7's growth (0.71) was called unexplained:distance while the noise step left a sigma estimated under
+    the old growth beside the new one (the candidate lost 185 nats); the sigma now follows its scales."""
+    generate(tmp_path / "log", kind="table", minutes=6, seed=7, effect="range_dependent_noise", min_range=0.8)
+    log = cg.load_log(tmp_path / "log")
+    diag = cg.diagnose(log, cg.calibrate(log), candidates=["range_dependent_noise", "battery_fade"])
+    assert diag.verdict == "range_dependent_noise" and diag.candidates[0].delta_bic < -300
+
+
+@pytest.mark.science
 def test_false_detections_on_continuous_commands_named_and_modelled(tmp_path):
     """Issues 20-21: a share of the sightings follows no landmark (uniform readings and bearings, the world's
     own draw); the continuous diagnosis scores the mixture on every sighting, the gated ones too, names it with

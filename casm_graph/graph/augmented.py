@@ -162,6 +162,16 @@ def noise_effects(problem, st, model: Model) -> tuple[Model, np.ndarray]:
         ctx = {"weight": t["weight"][k], "reading_scale": t["scale"][k], "reading_sigma": m.reading_sigma,
                "bearing_sigma": m.bearing_sigma}
         theta[s] = eff.estimate_noise(theta[s], z_r, z_b, t["distance"][k], ctx)
+    # the reading sigma follows its new scales: the estimate under the old ones, times the change of the readings'
+    # mean square under the new (a growth estimated with the sigma profiled out, left beside a sigma estimated
+    # under the old growth, made a pair worse than either: an independent world's growth of 0.71 per metre lost
+    # 185 nats in two rounds and was never named)
+    k = problem.r_sel & (t["weight"] > 0.5)
+    new = reading_scale(problem.sensor_effects, theta, t["distance"])
+    e = t["reading"][k]
+    before, after = np.mean((e / t["scale"][k]) ** 2) if k.any() else 0.0, np.mean((e / new[k]) ** 2) if k.any() else 0.0
+    if before > 0 and after > 0 and np.isfinite(after):
+        m = m.with_(reading_sigma=m.reading_sigma * float(np.sqrt(after / before)))
     described = {eff.name: eff.describe(theta[s]) for eff, s in problem.noise_effects}
     return m.with_(effects={**m.effects, **described}), theta
 
