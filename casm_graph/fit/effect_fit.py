@@ -64,7 +64,7 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
                               freeze_parameters=not fit_parameters, rel_tol=rel_tol)
         its += h.iterations
         cost.extend(h.cost)
-        model = model.with_(velocities=st.velocities, reading_poly=st.poly)
+        model = problem.with_state(model, st)
         if fit_parameters and fit_noise:
             model, theta_new = estimate_noise(problem, st, model, seed=seed + r)
             st = State(st.poses, st.velocities, st.poly, theta_new)

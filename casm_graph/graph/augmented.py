@@ -167,11 +167,12 @@ def noise_effects(problem, st, model: Model) -> tuple[Model, np.ndarray]:
     # under the old growth, made a pair worse than either: an independent world's growth of 0.71 per metre lost
     # 185 nats in two rounds and was never named)
     k = problem.r_sel & (t["weight"] > 0.5)
-    new = reading_scale(problem.sensor_effects, theta, t["distance"])
-    e = t["reading"][k]
-    before, after = np.mean((e / t["scale"][k]) ** 2) if k.any() else 0.0, np.mean((e / new[k]) ** 2) if k.any() else 0.0
-    if before > 0 and after > 0 and np.isfinite(after):
-        m = m.with_(reading_sigma=m.reading_sigma * float(np.sqrt(after / before)))
+    if k.any():
+        e = t["reading"][k]
+        new = reading_scale(problem.sensor_effects, theta, t["distance"][k])
+        before, after = np.mean((e / t["scale"][k]) ** 2), np.mean((e / new) ** 2)
+        if before > 0 and after > 0 and np.isfinite(after):
+            m = m.with_(reading_sigma=m.reading_sigma * float(np.sqrt(after / before)))
     described = {eff.name: eff.describe(theta[s]) for eff, s in problem.noise_effects}
     return m.with_(effects={**m.effects, **described}), theta
 

@@ -22,7 +22,7 @@ from gtsam.symbol_shorthand import T, X
 import factors
 from casm_graph.graph import chain, robust
 from casm_graph.graph import table as G
-from casm_graph.graph.actions import ACTIONS, default_layout, kind_of
+from casm_graph.graph.actions import default_layout, part_for
 from casm_graph.graph.augmented import (parameter_prior, parameter_slices, reading_scale,
                                         sensor_function, theta_from_model)
 from casm_graph.io.log import Log, wrap
@@ -101,7 +101,7 @@ class Problem:
         self.motion_effects = [(e, s) for e, s in zip(self.effects, self.slices) if e.channel == "motion"]
         self.sensor_effects = [(e, s) for e, s in zip(self.effects, self.slices) if e.channel == "sensor"]
         self.noise_effects = [(e, s) for e, s in self.sensor_effects if e.noise_only]
-        self.action = ACTIONS[kind_of(model, lay)](log, model, lay, self.motion_effects, ls, self.effects)
+        self.action = part_for(lay)(log, model, lay, self.motion_effects, ls, self.effects)
         self.n_action, self.D = self.action.n, len(model.reading_poly)
         self.n_theta = self.n_action + self.D + len(ls)
         self.basis = model.reading_basis

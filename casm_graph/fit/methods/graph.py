@@ -96,8 +96,7 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress,
         progress.step(0, cost=c)
 
     st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick)
-    model = model.with_(velocities=st.velocities, reading_poly=st.poly)
-    return problem, st, model, h
+    return problem, st, problem.with_state(model, st), h
 
 
 def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) -> np.ndarray:

@@ -9,12 +9,10 @@ ACTIONS: dict[str, type[ActionPart]] = {TableActions.name: TableActions, Command
 DEFAULT_KNOT_DT = 0.25       # s between a command log's knots when the caller gives no layout (the fine graph's)
 
 
-def kind_of(model, lay=None) -> str:
-    """The action part a graph calls for: the one whose layout ``lay`` is, else the model's (a command map or a
-    velocity table). graph-em's E-step gives a command log's model a table of one pseudo-action per step."""
-    if lay is not None:
-        return next(name for name, part in ACTIONS.items() if isinstance(lay, part.layout_type))
-    return CommandPoly.name if model.command is not None else TableActions.name
+def part_for(lay) -> type[ActionPart]:
+    """The action part whose layout ``lay`` is (graph-em's E-step lays a command log out as a table of one
+    pseudo-action per step, so the layout, not the model, decides)."""
+    return next(part for part in ACTIONS.values() if isinstance(lay, part.layout_type))
 
 
 def default_layout(log, model):
@@ -22,4 +20,4 @@ def default_layout(log, model):
     return command_layout(log, DEFAULT_KNOT_DT) if model.command is not None else G.layout(log, model, stride=1)
 
 
-__all__ = ["ACTIONS", "ActionPart", "CommandPoly", "TableActions", "default_layout", "kind_of"]
+__all__ = ["ACTIONS", "ActionPart", "CommandPoly", "TableActions", "default_layout", "part_for"]
