@@ -5,8 +5,9 @@ covariate, strongest first) on the command-model graph of :mod:`casm_graph.fit.c
 is re-settled on the log (poses, command map and polynomial; noise levels as given), and its
 motion residuals per knot-to-knot segment and its reading and bearing residuals per sighting are
 tested. ``time_since_action_change`` is the time since the command last moved by more than
-``DiagnoseOptions.command_change`` of its range; with a fixed camera the image angle is the bearing (listed first,
-so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
+``DiagnoseOptions.command_change`` of its range (the channels are :func:`casm_graph.fit.residuals.channels`, as on
+action tables, the reading and bearing spreads standardised by their leverage); with a fixed camera the image angle
+is the bearing (listed first, so a tie names it). The catalog effects these graphs can take (``continuous.EFFECTS``) are the
 candidates, the profiled ones placed by their profile (:func:`casm_graph.fit.continuous.profile`), the others
 fitted through their hooks, and every one scored by delta BIC against one base, each settled the same way at
 its value; time-blocked held-out folds are not run for these, so the verdict's second line of evidence is the
@@ -29,75 +30,17 @@ from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions,
                                            verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
-from casm_graph.fit.residuals import Channel, place
+from casm_graph.fit.residuals import channels
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
-from casm_graph.graph.problem import Problem, State
-from casm_graph.io.log import Log, LogError, wrap
+from casm_graph.graph.problem import Problem
+from casm_graph.io.log import Log, LogError
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
 
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
                         "{:.3f} s ({} first-order stage{})."}
-
-
-def time_since_command_change(log: Log, frac: float = DEFAULTS.command_change) -> np.ndarray:
-    """(T,) seconds since either command last jumped by more than ``frac`` of its range."""
-    span = np.ptp(log.controls, axis=0)
-    jump = np.any(np.abs(np.diff(log.controls, axis=0)) > frac * np.where(span > 0, span, 1.0), axis=1)
-    last = np.maximum.accumulate(np.where(np.concatenate([[True], jump]), np.arange(log.steps), 0))
-    return log.t - log.t[last]
-
-
-def command_acceleration(seg_v: np.ndarray, seg_mid: np.ndarray) -> np.ndarray:
-    """(S, 3) rate of change of the model's velocity into each segment from the one before (0 for the first):
-    with smooth commands, where ``time_since_action_change`` says little, a delay (an actuator lag, or a camera
-    latency the smoothed poses take in) leaves motion residuals of about minus the delay times this. Backward,
-    so that a robot steering by feedback, whose later commands answer its present motion noise, shows none."""
-    out = np.zeros_like(seg_v)
-    if len(seg_mid) > 1:
-        out[1:] = np.diff(seg_v, axis=0) / np.maximum(np.diff(seg_mid), 1e-9)[:, None]
-    return out
-
-
-def channels(log: Log, problem: Problem, st: State, model: Model,
-             command_change: float = DEFAULTS.command_change) -> dict[str, Channel]:
-    """Whitened residual channels of the continuous graph with the INTERFACE covariates it has."""
-    lay = problem.lay
-    P = st.poses
-    e = problem.motion_residual(st)
-    v = model.command.velocities(log.controls, log.dt)
-    seg_v = (v[lay.seg_idx] * lay.seg_dt[:, :, None]).sum(axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
-    t = log.pose_times[lay.knots[:-1]] - log.t[0]
-    since = time_since_command_change(log, command_change)[lay.knots[:-1]]
-    accel = command_acceleration(seg_v, t + 0.5 * lay.seg_time)
-    cov = {"time": t, "x": P[:-1, 0], "y": P[:-1, 1], "place": place(P[:-1]), "heading": P[:-1, 2],
-           "speed": seg_v[:, 0],
-           "turn_rate": seg_v[:, 2], "time_since_action_change": since, "acceleration": accel[:, 0],
-           "turn_acceleration": accel[:, 2]}
-    out = {}
-    for k, name in enumerate(("forward", "lateral", "turn")):
-        out[name] = Channel(name, e[:, k] / problem.motion_sigma[:, k], e[:, k], t, cov, command=seg_v[:, k],
-                            span=lay.seg_time)
-    pose = P[lay.obs_knot]
-    res = CT.sighting_residuals(log, pose, model, problem.effects)
-    dist, bearing = res["distance"], res["bearing"]
-    vo = v[np.minimum(log.obs_step, log.steps - 1)]
-    ot = log.obs_t - log.t[0]
-    scov = {"time": ot, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2], "speed": vo[:, 0],
-            "turn_rate": vo[:, 2], "distance": dist, "image_angle": wrap(bearing - log.camera_pan), "bearing": bearing,
-            "landmark": log.obs_landmark.astype(float)}
-    r_sigma = np.full(len(ot), problem.reading_sigma)
-    r_sigma *= problem.r_scale          # a noise effect's factor on each reading's sigma
-    for name, raw, sigma, sel in (("reading", res["reading"], r_sigma, problem.r_sel),
-                                  ("bearing", res["bearing_residual"], np.full(len(ot), problem.bearing_sigma),
-                                   problem.b_sel)):
-        keep = sel & np.isfinite(raw)
-        if not keep.any():
-            continue                      # a channel this log does not measure (range-only, bearing-only)
-        out[name] = Channel(name, raw[keep] / sigma[keep], raw[keep], ot[keep], {c: x[keep] for c, x in scov.items()})
-    return out
 
 
 def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
@@ -211,7 +154,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     model = problem.with_state(model, st)
     full = CT.fill_in(log, model, lay.knots, st.poses)
     base = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
-    chs = channels(log, problem, st, model, o.command_change)
+    chs = channels(problem, st, o.command_change)
     rep = channel_report(chs, o)
     struct = structures(rep, o)
     hooked, skipped = hooked_candidates(log, model, extra_effects)

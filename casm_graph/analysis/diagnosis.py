@@ -43,6 +43,7 @@ from casm_graph.analysis.proposal import words as proposal_words
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
 from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
+from casm_graph.graph.actions.command_poly import COMMAND_CHANGE
 from casm_graph.graph.augmented import instantiate
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.io.output import atomic_dir, json_text
@@ -87,7 +88,7 @@ class DiagnoseOptions:
     heldout_gate: float = 0.0          # candidates with delta BIC below this get held-out folds
     settle_iterations: int = 8         # continuous logs: LM iterations re-settling the model before its residuals
     settle_rounds: int = 2             # continuous logs: noise step and LM rounds settling each candidate and the base
-    command_change: float = 0.1        # continuous logs: a command jump of this share of its range starts an "action"
+    command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
     proposal: ProposalOptions = field(default_factory=ProposalOptions)   # the equation search of an unexplained verdict
 
@@ -675,7 +676,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
     # the reference every candidate is scored against: the same warm-started procedure, nothing added
     base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=o.candidate_rounds,
                           iterations=o.candidate_iterations)
-    chs = channels(refit.problem, refit.state)
+    chs = channels(refit.problem, refit.state, o.command_change)
     rep = channel_report(chs, o)
     todo, skipped = [], {}
     for cls in pool:

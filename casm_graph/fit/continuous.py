@@ -23,6 +23,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from gtsam.symbol_shorthand import X
 
+from casm_graph.fit import turns
 from casm_graph.fit import windows as W
 from casm_graph.fit.methods.base import Fit, Progress
 from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
@@ -238,6 +239,14 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
         st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick,
                               freeze_parameters=freeze)
         its += h.iterations
+        turn = problem.motion_residual(st)[:, 2]
+        runs = turns.spins(turn)
+        if runs:                 # a whole turn wound into a few knots: unwound, kept when the graph agrees
+            tried, h2 = least_squares(problem, replace(st, poses=turns.unwind(st.poses, turn, runs)),
+                                      max_iterations=iterations, on_iteration=tick, freeze_parameters=freeze)
+            its += h2.iterations
+            if problem.cost(tried) < problem.cost(st):
+                st, h = tried, h2
         poses = st.poses
         model = problem.with_state(model, st)
         if r < rounds - 1 or last_noise:
@@ -595,8 +604,8 @@ def _concentrated_log_likelihood(problem: Problem, st: State, model: Model) -> f
     for k, w2 in _group_sums(problem, st).items():
         if problem.mixed and k in ("reading", "bearing"):
             continue
-        ref = np.log(np.median(base[k])) if k in base else np.log(getattr(problem, f"{k}_sigma"))
-        out -= 0.5 * len(w2) * (np.log(np.mean(w2)) + 2 * ref)
+        log_det = np.sum(np.log(base[k])) if k in base else len(w2) * np.log(getattr(problem, f"{k}_sigma"))
+        out -= 0.5 * len(w2) * np.log(np.mean(w2)) + log_det
     return float(out - np.sum(np.log(problem.r_scale[problem.r_idx])))
 
 

@@ -13,6 +13,7 @@ import numpy as np
 from scipy import stats
 
 from casm_graph.graph import chain
+from casm_graph.graph.actions.command_poly import COMMAND_CHANGE
 from casm_graph.graph.problem import Problem, State
 from casm_graph.graph.table import Layout
 from casm_graph.io.log import Log, wrap
@@ -123,20 +124,16 @@ def sighting_leverage(problem: Problem, st: State) -> dict[str, np.ndarray]:
     return out
 
 
-def channels(problem: Problem, st: State) -> dict[str, Channel]:
-    """Residual channels of ``st`` under ``problem`` (its noise levels, effects and masks)."""
+def channels(problem: Problem, st: State, command_change: float = COMMAND_CHANGE) -> dict[str, Channel]:
+    """Residual channels of ``st`` under ``problem`` (its noise levels, effects, masks and gate), any action model:
+    the motion channels' own covariates come from the action part (``command_change``: a continuous log's
+    jump that counts as a new action)."""
     log = problem.log
     out = {}
     r = problem.rows(st, jacobians=False)
-    v = problem.step_velocity(st)
     P = st.poses[:-1]
-    t = problem.m_ctx["t"]
-    cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "place": place(P), "heading": P[:, 2],
-           "speed": np.hypot(v[:, 0], v[:, 1]),
-           "turn_rate": v[:, 2], "time_since_action_change": problem.m_ctx["since"],
-           "action": log.action.astype(float)}
-    commanded = st.velocities[problem.lay.seg_action]
-    span = problem.lay.seg_steps * problem.lay.seg_dt
+    t, own, commanded, span = problem.action.motion_covariates(st.poses, st.action, st.theta, command_change)
+    cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "place": place(P), "heading": P[:, 2], **own}
     for k, name in enumerate(("forward", "lateral", "turn")):
         out[name] = Channel(name, r.action_e[:, k], r.action_e[:, k] * problem.motion_sigma[:, k], t, cov,
                             command=commanded[:, k], span=span)
@@ -150,9 +147,9 @@ def channels(problem: Problem, st: State) -> dict[str, Channel]:
             "distance": pred["distance"], "bearing": pred["bearing"],
             "image_angle": wrap(pred["bearing"] - problem.pan), "landmark": log.obs_landmark.astype(float)}
     lev = sighting_leverage(problem, st)
-    for name, raw, sigma in (("reading", terms["reading"], problem.reading_sigma * terms["scale"]),
-                             ("bearing", terms["bearing"], np.full(len(ot), problem.bearing_sigma))):
-        ok = np.isfinite(raw) & problem.obs_mask & (terms["weight"] > 0.5)   # a mixture's outliers are explained
+    for name, raw, sigma, sel in (("reading", terms["reading"], problem.reading_sigma * terms["scale"], problem.r_sel),
+                                  ("bearing", terms["bearing"], np.full(len(ot), problem.bearing_sigma), problem.b_sel)):
+        ok = np.isfinite(raw) & sel & (terms["weight"] > 0.5)   # a mixture's outliers are explained, the gate's out
         if not ok.any():
             continue                      # a channel the log does not measure (ranges only)
         out[name] = Channel(name, (raw / sigma)[ok], raw[ok], ot[ok], {k: c[ok] for k, c in scov.items()},

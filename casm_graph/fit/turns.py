@@ -16,6 +16,7 @@ from casm_graph.io.log import Log, wrap
 from casm_graph.models.model import Model
 
 MAX_TURNS = 3
+SPIN_TURN = 0.5     # rad a knot-to-knot segment turns beyond the model before it may belong to a spin
 
 
 def segments(lay: Layout) -> list[tuple[int, int]]:
@@ -138,3 +139,24 @@ def realias(log: Log, lay: Layout, model: Model, poses: np.ndarray) -> tuple[Mod
                 new[:, 2] = wrap(new[:, 2])
                 poses[k0:k1 + 1] = new
     return model.with_(velocities=vel), poses, changed
+
+
+def spins(turn_residual: np.ndarray, min_turn: float = SPIN_TURN) -> list[tuple[int, int]]:
+    """(first knot, last knot) of each spin: consecutive segments that each turn more than ``min_turn`` beyond the
+    model and together a whole turn or more, which no local step undoes (each segment's wrapped residual would
+    first have to grow)."""
+    big = np.abs(turn_residual) > min_turn
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], big.astype(int), [0]])))
+    runs = [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
+    return [(a, b) for a, b in runs if abs(np.sum(turn_residual[a:b])) > np.pi]
+
+
+def unwind(poses: np.ndarray, turn_residual: np.ndarray, runs: list[tuple[int, int]]) -> np.ndarray:
+    """Knot poses with each spin's headings re-drawn by the model's turns from its first knot, the closure error
+    (the residuals' sum less its whole turns) spread linearly; positions and every other knot stay."""
+    out = poses.copy()
+    for a, b in runs:
+        e = turn_residual[a:b]
+        share = np.arange(1, b - a) / (b - a)
+        out[a + 1:b, 2] = wrap(poses[a + 1:b, 2] - np.cumsum(e)[:-1] + share * wrap(np.sum(e)))
+    return out

@@ -85,6 +85,19 @@ class CommandModel:
         both = lagged(np.hstack([bv, bw]), dt, self.lag, self.lag_order)
         return both[:, :self.n_v], both[:, self.n_v:]
 
+    def lag_memory(self, dt: np.ndarray) -> np.ndarray:
+        """(T,) displacement over each step per unit of velocity offset the lag held when the log began (the
+        velocity before the first command, unknown: at rest, or settled at another command), as its stages forget
+        it: order 1 exp(-t/a), order 2 (1 + t/a) exp(-t/a), a = lag / order, integrated over the step."""
+        t1 = np.cumsum(np.asarray(dt, float))
+        if self.lag <= 0:
+            return np.zeros_like(t1)
+        a = self.lag / self.lag_order
+        u0, u1 = np.concatenate([[0.0], t1[:-1]]) / a, t1 / a
+        if self.lag_order == 2:
+            return a * ((2 + u0) * np.exp(-u0) - (2 + u1) * np.exp(-u1))
+        return a * (np.exp(-u0) - np.exp(-u1))
+
     def velocities(self, controls: np.ndarray, dt: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) body-frame (forward, lateral, turn) velocity for each command row (steady state without ``dt``)."""
         bv, bw = self.basis(controls, dt)

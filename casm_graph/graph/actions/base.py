@@ -72,6 +72,13 @@ class ActionPart:
         respect to the parameters (effects aside)."""
         raise NotImplementedError
 
+    def motion_covariates(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray, command_change: float):
+        """(t, covariates, commanded, span) of every segment for the residual channels: its start (s since the log
+        began), the covariates this kind of action model has (speed, turn rate, time since the action changed,
+        ...), the model's velocity on each axis (S, 3) and the seconds it covers. ``command_change``: the share of
+        a command's range a jump must pass to count as a new action (continuous commands)."""
+        raise NotImplementedError
+
     def motion_noise_step(self, model: Model, problem, e: np.ndarray, A, groups: dict, lu) -> Model:
         """``model`` with the parameters of a motion-noise effect the part places (regions of the floor)
         re-estimated from the whitened residual ``e`` of Jacobian ``A`` (rows ``groups``, solver ``lu``)."""

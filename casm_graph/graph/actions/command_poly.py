@@ -23,6 +23,7 @@ from casm_graph.models.command_model import for_commands
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import Model
 
+COMMAND_CHANGE = 0.1         # a command jump of this share of its range starts an "action" (the residuals' covariate)
 PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the
                              # command scale
 
@@ -84,6 +85,25 @@ def sighting_means(log: Log, rows: np.ndarray, window: float) -> np.ndarray:
     return out
 
 
+def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndarray:
+    """(T,) seconds since either command last jumped by more than ``frac`` of its range."""
+    span = np.ptp(log.controls, axis=0)
+    jump = np.any(np.abs(np.diff(log.controls, axis=0)) > frac * np.where(span > 0, span, 1.0), axis=1)
+    last = np.maximum.accumulate(np.where(np.concatenate([[True], jump]), np.arange(log.steps), 0))
+    return log.t - log.t[last]
+
+
+def command_acceleration(seg_v: np.ndarray, seg_mid: np.ndarray) -> np.ndarray:
+    """(S, 3) rate of change of the model's velocity into each segment from the one before (0 for the first):
+    with smooth commands, where ``time_since_action_change`` says little, a delay (an actuator lag, or a camera
+    latency the smoothed poses take in) leaves motion residuals of about minus the delay times this. Backward,
+    so that a robot steering by feedback, whose later commands answer its present motion noise, shows none."""
+    out = np.zeros_like(seg_v)
+    if len(seg_mid) > 1:
+        out[1:] = np.diff(seg_v, axis=0) / np.maximum(np.diff(seg_mid), 1e-9)[:, None]
+    return out
+
+
 class CommandPoly(ActionPart):
     """The command map's coefficients in a graph on a :class:`Layout`."""
 
@@ -142,6 +162,11 @@ class CommandPoly(ActionPart):
             self.seg_turn = np.sum(np.abs(v[..., 2]) * lay.seg_dt, axis=1)
             vr, vt = RMN.variances(k[self.seg_region], self.seg_r, self.seg_turn)
             sigma[:, 0], sigma[:, 2] = np.sqrt(vr), np.sqrt(vt)
+        cm = model.command
+        if cm.lag > 0:       # the velocity the lag held before the log is unknown, up to the log's velocity range
+            memory = np.sum(cm.lag_memory(log.dt)[lay.seg_idx] * (lay.seg_dt > 0), axis=1)
+            spread = np.max(np.abs(cm.velocities(log.controls)), axis=0)
+            sigma = np.sqrt(sigma ** 2 + (memory[:, None] * spread[None, :]) ** 2)
         return sigma
 
     def motion_noise_step(self, model: Model, problem, e: np.ndarray, A, groups: dict, lu) -> Model:
@@ -164,6 +189,17 @@ class CommandPoly(ActionPart):
                 k_new[g] = RMN.estimate(self.seg_r[sel], self.seg_turn[sel], e2[sel, 0], e2[sel, 1], k[g])
         counts = np.bincount(self.seg_region, minlength=regions.count)
         return model.with_(effects={**model.effects, RMN.RegionalMotionNoise.name: RMN.entry(regions, k_new, counts)})
+
+    def motion_covariates(self, poses, x, theta, command_change):
+        lay, log = self.lay, self.log
+        v = self._velocities(np.asarray(x, float), self.Bv, self.Bw)
+        seg_v = np.sum(v * lay.seg_dt[..., None], axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
+        t = log.pose_times[lay.knots[:-1]] - log.t[0]
+        accel = command_acceleration(seg_v, t + 0.5 * lay.seg_time)
+        cov = {"speed": seg_v[:, 0], "turn_rate": seg_v[:, 2],
+               "time_since_action_change": time_since_command_change(log, command_change)[lay.knots[:-1]],
+               "acceleration": accel[:, 0], "turn_acceleration": accel[:, 2]}
+        return t, cov, seg_v, lay.seg_time
 
     def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
         """(..., 3) body velocity of basis rows under map coefficients ``p`` (no sideways motion)."""

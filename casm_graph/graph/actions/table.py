@@ -56,6 +56,13 @@ class TableActions(ActionPart):
         V = np.asarray(x).reshape(self.shape)
         return factors.effect_motion.velocity(self._fn(theta), V[self.lay.seg_action], V[self.prev_row], poses[:-1])
 
+    def motion_covariates(self, poses, x, theta, command_change):
+        lay = self.lay
+        v = self.step_velocity(poses, x, theta)
+        cov = {"speed": np.hypot(v[:, 0], v[:, 1]), "turn_rate": v[:, 2], "time_since_action_change": self.m_ctx["since"],
+               "action": self.log.action[lay.knots[:-1]].astype(float)}
+        return self.m_ctx["t"], cov, np.asarray(x).reshape(self.shape)[lay.seg_action], lay.seg_steps * lay.seg_dt
+
     def motion(self, poses, x, theta, jacobians=True, parameters=True):
         lay, V = self.lay, np.asarray(x).reshape(self.shape)
         if self.motion_effects:
