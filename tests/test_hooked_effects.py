@@ -73,6 +73,24 @@ def test_hooked_effect_jacobians_match_numerical():
     _numerical_jacobian_check(problem, st)
 
 
+def test_the_open_loop_runs_with_the_hooked_motion_effects():
+    """What a command log's model runs open-loop (the predictive residuals) is every step's map velocity through
+    its motion effects: a fade of 0.05 per minute slows step k by 1 - 0.05 t_k / 60 on the knots' layout (before,
+    the continuous diagnosis ran the bare map, so adding a fade or a friction field changed no open-loop error)."""
+    log, _ = simulate(FloorConfig(minutes=1.0, seed=3, dt=0.1))
+    fade = get("battery_fade")(log)
+    m = CT.start_model(log).with_(command=CT.for_commands(log.controls, 2, 1, gain=0.9))
+    m = m.with_(effects={"battery_fade": fade.describe(np.array([0.05]))})
+    lay = CT.layout(log, CT.DEFAULTS.full_knot_dt)
+    problem = Problem(log, m, [fade], lay=lay, poses=log.truth[lay.knots, 1:])
+    st = problem.state(log.truth[lay.knots, 1:], m)
+    got = problem.action.step_velocities(st.poses, st.action, st.theta)
+    t = log.pose_times[:-1] - log.pose_times[0]
+    want = m.command.velocities(log.controls, log.dt) * (1.0 - 0.05 * t / 60.0)[:, None]
+    assert got.shape == (log.steps, 3)
+    assert np.allclose(got, want, rtol=1e-9, atol=1e-12)
+
+
 def test_effects_the_log_cannot_carry_are_refused_before_any_work(tmp_path, capsys):
     log, _ = simulate(FloorConfig(minutes=0.5, seed=1, dt=0.1, sensor="range"))
     with pytest.raises(cg.LogError, match="lens_distortion cannot be fitted .*needs the bearing"):

@@ -23,11 +23,10 @@ from dataclasses import replace
 import numpy as np
 
 from casm_graph.analysis.correlation import correlation
-from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, Diagnosis, best_of_family,
                                            channel_report, chosen_candidates, family_members, family_words, folds,
-                                           lookalike_words, lookalikes, discover, predicted_sightings, structures,
-                                           verdict)
+                                           lookalike_words, lookalikes, discover, open_loop_error,
+                                           predicted_sightings, structures, verdict)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods.base import Fit
 from casm_graph.fit.residuals import channels
@@ -220,15 +219,6 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
                      "poses); the others need BIC and the residual structure they are built for.")
     return Diagnosis(rep, cands, v, words, struct, base, chs, time.perf_counter() - t0, skipped,
                      set_aside=problem.set_aside(model), correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, problem, model, full), proposal=found,
+                     predictive=open_loop_error(problem, st, full), proposal=found,
                      options=o)
 
-
-def open_loop_error(log: Log, problem: Problem, model: Model, poses: np.ndarray) -> dict:
-    """:func:`casm_graph.analysis.predictive.predictive` of the command map (its lag included) from ``poses``
-    (T+1, 3), the sightings the gate kept."""
-    def residuals(trajectory):
-        res = CT.sighting_residuals(log, trajectory[log.obs_step], model, problem.effects)
-        return {"reading": np.where(problem.r_sel, res["reading"], np.nan),
-                "bearing": np.where(problem.b_sel, res["bearing_residual"], np.nan)}
-    return predictive(poses, CT.step_velocities(log, model), log.dt, residuals)

@@ -706,7 +706,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
                        base=predicted_sightings(base.problem, base.state))
     return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
                      skipped, correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(log, refit.problem, refit.state), proposal=found, options=o)
+                     predictive=open_loop_error(refit.problem, refit.state, refit.poses), proposal=found, options=o)
 
 
 def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
@@ -797,11 +797,15 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
         f"the model and the catalog lack depends on {cov}."], found
 
 
-def open_loop_error(log: Log, problem, st) -> dict:
-    """:func:`casm_graph.analysis.predictive.predictive` of the refitted action-table model: its motion effects
-    drive the open-loop runs, its sensor effects predict the sightings (a mixture's outliers left out)."""
+def open_loop_error(problem, st, poses: np.ndarray) -> dict:
+    """:func:`casm_graph.analysis.predictive.predictive` of the refitted model from ``poses`` (T+1, 3, the smoothed
+    trajectory at every step), any action model: its motion effects drive the open-loop runs, its sensor effects
+    predict the sightings (those the problem takes: a mixture's outliers and the gate's left out)."""
+    knots = problem.lay.knots
+
     def residuals(trajectory):
-        terms = problem.observation_terms(replace(st, poses=trajectory))
-        keep = problem.obs_mask & (terms["weight"] > 0.5)
-        return {ch: np.where(keep, terms[ch], np.nan) for ch in ("reading", "bearing")}
-    return predictive(st.poses, problem.step_velocity(st), log.dt, residuals)
+        terms = problem.observation_terms(replace(st, poses=trajectory[knots]))
+        return {ch: np.where(sel & (terms["weight"] > 0.5), terms[ch], np.nan)
+                for ch, sel in (("reading", problem.r_sel), ("bearing", problem.b_sel))}
+    return predictive(poses, problem.action.step_velocities(st.poses, st.action, st.theta), problem.log.dt,
+                      residuals)

@@ -72,6 +72,11 @@ class ActionPart:
         respect to the parameters (effects aside)."""
         raise NotImplementedError
 
+    def step_velocities(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """(T, 3) body velocity of every step of the log under parameters ``x`` and the motion effects at ``theta``
+        (``poses``: the knots, where place-dependent effects read): what the model runs open-loop."""
+        raise NotImplementedError
+
     def motion_covariates(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray, command_change: float):
         """(t, covariates, commanded, span) of every segment for the residual channels: its start (s since the log
         began), the covariates this kind of action model has (speed, turn rate, time since the action changed,

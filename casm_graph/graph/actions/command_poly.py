@@ -206,18 +206,30 @@ class CommandPoly(ActionPart):
         v = Bv @ p[:self.nv]
         return np.stack([v, np.zeros_like(v), Bw @ p[self.nv:self.n]], axis=-1)
 
-    def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
-        """(S, 3) displacement of every segment under map ``p`` and the motion effects at ``theta``, each step's
-        context pose placed along the segment by the map alone from the segment's ``start`` pose."""
+    def _slot_velocities(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """(S, kmax, 3) velocity of every step of every segment under map ``p`` and the motion effects at
+        ``theta``, each step's context pose placed along the segment by the map alone from its ``start`` pose."""
         v0 = self._velocities(p, self.Bv, self.Bw)
+        if not self.motion_effects:
+            return v0
         _, rel = factors.command.integrate(v0, self.lay.seg_dt)
         c, s = np.cos(start[:, 2])[:, None], np.sin(start[:, 2])[:, None]
         pose = np.stack([start[:, 0:1] + c * rel[..., 0] - s * rel[..., 1],
                          start[:, 1:2] + s * rel[..., 0] + c * rel[..., 1], start[:, 2:3] + rel[..., 2]], axis=-1)
         fn = motion_function(self.motion_effects, self.m_ctx, theta)
-        v = fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.Bw_prev).reshape(-1, 3),
-               pose.reshape(-1, 3)).reshape(v0.shape)
-        return factors.command.integrate(v, self.lay.seg_dt)[0]
+        return fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.Bw_prev).reshape(-1, 3),
+                  pose.reshape(-1, 3)).reshape(v0.shape)
+
+    def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """(S, 3) displacement of every segment under map ``p`` and the motion effects at ``theta``."""
+        return factors.command.integrate(self._slot_velocities(p, theta, start), self.lay.seg_dt)[0]
+
+    def step_velocities(self, poses, x, theta):
+        v = self._slot_velocities(np.asarray(x, float), np.asarray(theta, float), np.asarray(poses)[:-1])
+        out = np.zeros((self.log.steps, 3))
+        slot = self.lay.seg_dt > 0
+        out[self.lay.seg_idx[slot]] = v[slot]
+        return out
 
     def motion(self, poses, x, theta, jacobians=True, parameters=True):
         P = poses

@@ -56,6 +56,9 @@ class TableActions(ActionPart):
         V = np.asarray(x).reshape(self.shape)
         return factors.effect_motion.velocity(self._fn(theta), V[self.lay.seg_action], V[self.prev_row], poses[:-1])
 
+    def step_velocities(self, poses, x, theta):
+        return np.repeat(self.step_velocity(poses, x, theta), self.lay.seg_steps, axis=0)
+
     def motion_covariates(self, poses, x, theta, command_change):
         lay = self.lay
         v = self.step_velocity(poses, x, theta)
