@@ -38,6 +38,7 @@ from casm_graph.models.effects import REGISTRY
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
 
+NO_FOLDS = "held-out folds are not run for continuous-command logs"
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
                         "{:.3f} s ({} first-order stage{})."}
 
@@ -184,7 +185,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
                                heldout_nll_drop=float("nan"), explanation=f"{what} {eff.physics}",
                                delta_log_likelihood=gain,
                                parameters={param: prof.value, **({"order": prof.order} if prof.order > 1 else {})},
-                               heldout_skipped="held-out folds are not run for continuous-command logs",
+                               heldout_skipped=NO_FOLDS,
                                prediction=predicted_sightings(pb, s)))
         if progress is not None:
             progress.step(1)
@@ -200,7 +201,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
                                parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
-                               heldout_skipped="held-out folds are not run for continuous-command logs",
+                               heldout_skipped=NO_FOLDS,
                                prediction=predicted_sightings(pb, s)))
         if progress is not None:
             progress.step(1)

@@ -245,7 +245,7 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
             tried, h2 = least_squares(problem, replace(st, poses=turns.unwind(st.poses, turn, runs)),
                                       max_iterations=iterations, on_iteration=tick, freeze_parameters=freeze)
             its += h2.iterations
-            if problem.cost(tried) < problem.cost(st):
+            if h2.cost[-1] < h.cost[-1]:      # each history ends at its state's cost
                 st, h = tried, h2
         poses = st.poses
         model = problem.with_state(model, st)
@@ -551,8 +551,7 @@ def residual_rows(log: Log, lay: Layout, use) -> int:
 def settled_log_likelihood(log: Log, lay: Layout, model: Model, use, start: np.ndarray, effects=(),
                            rounds: int = 1, tol: float = 1.0, iterations: int = ProfileOptions.iterations):
     """(log-likelihood with the noise levels concentrated out, model, the graph and its state) after settling
-    ``model`` with ``effects``
-    on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
+    ``model`` with ``effects`` on ``lay`` from knot poses ``start``: LM, every noise level to its maximum, LM again (sightings ``use``
     fixed), so two models compare as a likelihood ratio on the same data. With ``rounds`` > 1 the noise step and
     the second LM repeat until the log-likelihood moves by less than ``tol`` nats (an effect whose parameters move
     the poses far, as a latency does, needs them); ``iterations`` bounds the first LM (half as many after)."""

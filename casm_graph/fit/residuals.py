@@ -105,12 +105,13 @@ class Channel:
     #                                                                smoothed pose absorbs (:func:`sighting_leverage`)
 
 
-def sighting_leverage(problem: Problem, st: State) -> dict[str, np.ndarray]:
+def sighting_leverage(problem: Problem, st: State, rows=None) -> dict[str, np.ndarray]:
     """Per observation, the leverage h = j Sigma j^T of its reading and of its bearing row (whitened pose Jacobian
     j, the smoothed pose's covariance Sigma with the parameters held; NaN where not measured). A residual's
     variance is its noise's times 1 - h: a sighting that pins its pose (near, where the sensor curve is steep)
-    leaves a smaller residual, which a test of the residuals' spread would read as noise growing with distance."""
-    r = problem.rows(st, parameters=False)
+    leaves a smaller residual, which a test of the residuals' spread would read as noise growing with distance.
+    ``rows``: the problem's rows at ``st`` with their pose Jacobians, when the caller has them."""
+    r = problem.rows(st, parameters=False) if rows is None else rows
     D, B = chain.information_blocks(problem, st, rows=r)
     try:
         cov = chain.select_inverse(D, B)[0]
@@ -130,7 +131,7 @@ def channels(problem: Problem, st: State, command_change: float = COMMAND_CHANGE
     jump that counts as a new action)."""
     log = problem.log
     out = {}
-    r = problem.rows(st, jacobians=False)
+    r = problem.rows(st, parameters=False)      # the pose Jacobians serve the leverage below
     P = st.poses[:-1]
     t, own, commanded, span = problem.action.motion_covariates(st.poses, st.action, st.theta, command_change)
     cov = {"time": t, "x": P[:, 0], "y": P[:, 1], "place": place(P), "heading": P[:, 2], **own}
@@ -146,7 +147,7 @@ def channels(problem: Problem, st: State, command_change: float = COMMAND_CHANGE
             "speed": np.hypot(ctx["velocity"][:, 0], ctx["velocity"][:, 1]), "turn_rate": ctx["velocity"][:, 2],
             "distance": pred["distance"], "bearing": pred["bearing"],
             "image_angle": wrap(pred["bearing"] - problem.pan), "landmark": log.obs_landmark.astype(float)}
-    lev = sighting_leverage(problem, st)
+    lev = sighting_leverage(problem, st, rows=r)
     for name, raw, sigma, sel in (("reading", terms["reading"], problem.reading_sigma * terms["scale"], problem.r_sel),
                                   ("bearing", terms["bearing"], np.full(len(ot), problem.bearing_sigma), problem.b_sel)):
         ok = np.isfinite(raw) & sel & (terms["weight"] > 0.5)   # a mixture's outliers are explained, the gate's out

@@ -143,11 +143,6 @@ class Problem:
         """Each sighting channel's row count, its sightings' inlier weights summed."""
         return {"reading": float(np.sum(self.weight[self.r_idx])), "bearing": float(np.sum(self.weight[self.b_idx]))}
 
-    @property
-    def m_ctx(self) -> dict:
-        """The motion hooks' context of every segment (time, time since the action changed, duration)."""
-        return self.action.m_ctx
-
     # ------------------------------------------------------------------ state
     def state(self, poses: np.ndarray, model: Model, theta: np.ndarray | None = None) -> State:
         """The variables at ``poses`` and ``model``'s action parameters and curve; the effects' at ``theta`` (the
@@ -172,10 +167,6 @@ class Problem:
                 for e, s in zip(self.effects, self.slices) if not e.noise_only}
 
     # ------------------------------------------------------------- evaluation
-    def step_velocity(self, st: State) -> np.ndarray:
-        """(S, 3) velocity each segment runs under the action model and the motion effects."""
-        return self.action.step_velocity(st.poses, st.action, st.theta)
-
     def sensor_context(self, st: State) -> dict:
         """Context of every observation under ``st`` (the velocity the action part gives a sighting)."""
         v, _ = self.action.sighting_velocity(st.poses, st.action, st.theta)
