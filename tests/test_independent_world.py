@@ -83,6 +83,22 @@ def test_a_clean_log_keeps_the_curve_in_d_untouched(tmp_path):
 
 
 @pytest.mark.science
+def test_an_effect_free_world_reads_none_once_its_curve_follows_the_readings(tmp_path):
+    """Table robot, seed 10, sightings from 0.8 m, no effect: the cubic in d missed the apparent size by 0.14 of the
+    reading sigma (RMS), too little for the curve's choice (which asked for 0.2) and enough for the diagnosis
+    (2 % of the reading variance): ``unexplained:distance`` and 0.086 m from the truth. The curve now moves when the
+    diagnosis would call its misfit material; the fit takes 1/d and the diagnosis says none."""
+    generate(tmp_path / "log", kind="table", minutes=6, seed=10, min_range=0.8)
+    log = cg.load_log(tmp_path / "log")
+    cal = cg.calibrate(log, seed=10)
+    sd = cal.model.fit["sensor_degree"]
+    assert sd["fitted"] > 3 or sd["basis"] == "inverse_distance", sd
+    assert position_rms(cal, log) < 0.05
+    diag = cg.diagnose(log, cal, candidates=["lens_distortion", "range_dependent_noise"])
+    assert diag.verdict == "none", (diag.verdict, diag.structure[:2])
+
+
+@pytest.mark.science
 def test_continuous_command_robot_of_another_world(tmp_path):
     truth, log = _world(tmp_path, kind="continuous", seed=0)
     cal = cg.calibrate(log, seed=0)
@@ -115,6 +131,13 @@ def test_the_sensor_curve_changes_only_when_the_readings_demand():
     grid = np.linspace(0.3, 8.0, 200)
     assert np.sqrt(np.mean((curve(grid, coef, basis) - (90.0 / (grid + 0.15) + 1.0)) ** 2)) < 0.2
     assert choose_curve(d, size, fit3, 1.0, 3) is None                   # unless the user holds the degree
+    P = np.polynomial.polynomial                                           # a bend of a tenth of the sigma, RMS, is
+    bend = d ** 4 - P.polyval(d, P.polyfit(d, d ** 4, 3))                  # material (1 % of the reading variance,
+    bend /= np.sqrt(np.mean(bend ** 2))                                    # what the diagnosis names); less is not
+    near = P.polyval(d, cubic) + 0.05 * bend + rng.normal(0, 1.0, len(d))
+    assert choose_curve(d, near, P.polyfit(d, near, 3), 1.0, 6) is None
+    bent = P.polyval(d, cubic) + 0.15 * bend + rng.normal(0, 1.0, len(d))
+    assert choose_curve(d, bent, P.polyfit(d, bent, 3), 1.0, 6)[1] == "distance"
     steps = np.round(size / 100) * 100                                     # three distinct readings: nothing to raise
     assert choose_curve(d, steps, np.polynomial.polynomial.polyfit(d, steps, 3), 1.0, 6) is None
 

@@ -6,7 +6,9 @@ reads as an effect (heavy tails as false detections, a trend as lens distortion)
 against the fitted distances are regressed on polynomials in d and in 1/d (:mod:`factors.reading`) up to
 ``max_degree``; the curve with the lowest BIC is taken when it changes the curve materially (by more than
 ``MATERIAL`` of the reading sigma, RMS over the sighted distances), so a curve the asked one already
-follows keeps it.
+follows keeps it. Material here is what the diagnosis calls material: a misfit of a tenth of the sigma is 1 %
+of the reading residuals' variance, the share (``DiagnoseOptions.structure_omega2``) at which their structure
+against the distance would be named ``unexplained:distance``.
 
 That choice cannot find 1/d from a fit in d that went wrong near the landmarks (from the paper's flat start
 a steep apparent size puts the robot almost on the landmark, and those distances favour d). So when a fit
@@ -21,7 +23,7 @@ from casm_graph.io.log import Log
 from casm_graph.models.model import Model
 from factors.reading import BASES, curve, fit_curve
 
-MATERIAL = 0.2           # share of the reading sigma the better curve must move by, RMS over the sightings
+MATERIAL = 0.1           # share of the reading sigma the better curve must move by, RMS over the sightings (1 % of its variance)
 TAIL = 4.0               # readings further than this many robust sigmas off the fitted curve stay out
 SUSPECT_PRUNED = 0.002   # share of the readings pruned beyond which a fit in d is tried against one in 1/d
 MARGIN = 10.0            # the other curve's score must be higher by this (and BIC's penalty for its extra terms)
