@@ -99,6 +99,31 @@ def test_autocorrelated_noise_does_not_fake_structure():
     assert D.structures(rep) == []
 
 
+def test_a_controller_answering_the_noise_is_feedback_not_structure():
+    """Closed loop: the command corrects the heading error the slip (an OU process) built up, so the turn residual
+    (the slip) depends on the commanded turn rate, and more on its later values: feedback, not a model error. Open
+    loop, a turn map that bends (residual = 0.3 tanh(w) + noise, smooth commands) stays structure: its dependence
+    is strongest on the command of its own step."""
+    rng = np.random.default_rng(7)
+    n, dt = 6000, 0.05
+    slip = 0.3 * ar1(n, np.exp(-dt / 0.5), rng)
+    heading, w = 0.0, np.empty(n)
+    for k in range(n):
+        w[k] = np.clip(-1.2 * heading, -1.5, 1.5)
+        heading += (w[k] + slip[k]) * dt
+    r = slip + 0.1 * rng.normal(size=n)
+    closed = Channel("turn", r, r, np.arange(n) * dt, {"turn_rate": w})
+    test = D.covariate_tests(closed)[0]
+    assert test["kind"] == "feedback" and test["strength"] > 0.01 and test["lead_strength"] > test["strength"], test
+    assert D.structures(D.channel_report({"turn": closed})) == []
+    assert D.covariate_tests(closed, D.DiagnoseOptions(feedback_lead=0.0))[0]["kind"] == "mean"   # the test off
+    w_open = 1.5 * ar1(n, 0.9, rng)
+    r_open = 0.3 * np.tanh(w_open) + rng.normal(size=n)
+    open_loop = Channel("turn", r_open, r_open, np.arange(n) * dt, {"turn_rate": w_open})
+    assert D.covariate_tests(open_loop)[0]["kind"] == "mean"
+    assert [s["name"] for s in D.structures(D.channel_report({"turn": open_loop}))] == ["turn_rate"]
+
+
 def cand(name, dbic, held):
     return D.Candidate(name, "motion", dbic, held, "because", -dbic / 2)
 

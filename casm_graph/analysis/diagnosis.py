@@ -90,6 +90,9 @@ class DiagnoseOptions:
     settle_rounds: int = 2             # continuous logs: noise step and LM rounds settling each candidate and the base
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
+    feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
+    #                                    this lead) more than its own is the controller correcting the noise, not
+    #                                    structure of the model (0: no such test)
     proposal: ProposalOptions = field(default_factory=ProposalOptions)   # the equation search of an unexplained verdict
 
     def to_json(self) -> dict:
@@ -143,6 +146,27 @@ def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]
 
 MOTION_CHANNELS = ("forward", "lateral", "turn")
 MIN_SHARE = 0.05        # the least share of its noise a residual keeps (1 - leverage) when standardised
+COMMANDED = ("speed", "turn_rate", "acceleration", "turn_acceleration")   # motion covariates the commands set
+
+
+def feedback_strength(r: np.ndarray, x: np.ndarray, t: np.ndarray, inflation: float,
+                      options: DiagnoseOptions = DEFAULTS) -> tuple[float, float]:
+    """(strongest omega squared, its lead in s) of residuals ``r`` against the values ``x`` took up to
+    ``options.feedback_lead`` later (all three in time order). A model error shows in the motion of the
+    command that caused it, or after it (a lag); a closed loop's commands answer the noise that went before
+    them, so the dependence grows with the lead (system identification's feedback test on the residuals'
+    cross-correlation with the inputs)."""
+    step = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    if options.feedback_lead <= 0 or step <= 0:
+        return 0.0, 0.0
+    best = (0.0, 0.0)
+    for j in range(1, max(1, int(round(options.feedback_lead / step))) + 1):
+        ok = np.isfinite(x[j:]) & np.isfinite(r[:-j])
+        if ok.sum() < 3 * options.min_per_bin:
+            break
+        s, _ = anova(r[:-j][ok], _groups(x[j:][ok], False, options), inflation)
+        best = max(best, (s, j * step))
+    return best
 
 
 def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[dict]:
@@ -169,7 +193,11 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
         g = _groups(x[ok], cat, options)
         s_mean, p_mean = anova(r[ok], g, infl)
         if motion:
-            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"})
+            lead, when = feedback_strength(r[order], x[order], ch.time[order], infl, options) \
+                if name in COMMANDED and p_mean < options.structure_p else (0.0, 0.0)
+            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"} if lead <= s_mean else
+                       {"name": name, "strength": s_mean, "p": p_mean, "kind": "feedback",
+                        "lead": when, "lead_strength": lead})
             continue
         s_spread, p_spread = anova(dev[ok], g, infl_dev)
         if s_spread > s_mean:
@@ -196,7 +224,7 @@ def structures(rep: dict, options: DiagnoseOptions = DEFAULTS) -> list[dict]:
     found = []
     for ch, r in rep.items():
         for c in r["covariates"]:
-            if c["p"] < options.structure_p and c["strength"] >= options.structure_omega2:
+            if c["p"] < options.structure_p and c["strength"] >= options.structure_omega2 and c["kind"] != "feedback":
                 found.append({"channel": ch, **c})
     found.sort(key=lambda d: -d["strength"])
     return found

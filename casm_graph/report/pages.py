@@ -296,7 +296,8 @@ def covariate_panels(diag, top: int = 6):
         lo, hi = np.quantile(y, [0.01, 0.99])
         ax.set_ylim(lo, hi)
         ax.set(xlabel=c["name"], ylabel=f"{ch} residual (sigmas)",
-               title=f"{ch} {c['kind']} vs {c['name']}: omega2 {c['strength']:.3f}, p {c['p']:.0e}")
+               title=f"{ch} {c['kind']} vs {c['name']}: omega2 {c['strength']:.3f}, p {c['p']:.0e}"
+                     + (f" ({c['lead_strength']:.3f} {c['lead']:.2f} s later: the loop)" if c["kind"] == "feedback" else ""))
         ax.title.set_fontsize(9)
     for ax in axes.ravel()[len(pairs):]:
         ax.axis("off")
