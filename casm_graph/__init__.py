@@ -13,6 +13,7 @@ from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit.calibration import CalibrateOptions, Calibration
 from casm_graph.fit.continuous import CommandGraphOptions
 from casm_graph.fit.methods.graph import GraphOptions
+from casm_graph.fit.sensor_degree import SensorCurveOptions
 from casm_graph.io.log import Log, LogError
 from casm_graph.io.log import load as load_log
 from casm_graph.io.mrclam import find_data as find_mrclam
@@ -27,4 +28,4 @@ from casm_graph.sim.protocols import simulate, write_log
 __all__ = ["load_log", "simulate", "write_log", "calibrate", "diagnose", "uncertainty", "Effect", "register", "catalog",
            "model_error", "against_truth", "load_mrclam", "find_mrclam", "LogError", "Log", "CalibrateOptions",
            "Calibration", "GraphOptions", "CommandGraphOptions", "DiagnoseOptions", "Diagnosis", "Uncertainty", "ProposalOptions",
-           "SamplerOptions"]
+           "SamplerOptions", "SensorCurveOptions"]

@@ -102,7 +102,8 @@ def test_calibrate_in_memory_then_save_as_the_command_does(bundle, cal, tmp_path
                                    "max_sensor_degree": 6, "sensor_basis": "auto",
                                    "graph": {"coarse_stride": 10, "coarse_rounds": 6, "coarse_iterations": 5,
                                              "coarse_relax": 1.0, "realias_after": [2, 4], "full_iterations": 15,
-                                             "full_rounds": 2},
+                                             "full_rounds": 2, "sensor_curve": {"material": 0.1, "tail": 4.0,
+                                                                                "suspect_pruned": 0.002, "margin": 10.0}},
                                    "command_graph": cg.CommandGraphOptions().to_json()}
     assert m["fit"]["log"] == str(bundle) and m["fit"]["version"]
     assert main(["calibrate", str(bundle), "--out", str(tmp_path / "cli"), "--quiet"]) == 0

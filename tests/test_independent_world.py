@@ -138,6 +138,8 @@ def test_the_sensor_curve_changes_only_when_the_readings_demand():
     assert choose_curve(d, near, P.polyfit(d, near, 3), 1.0, 6) is None
     bent = P.polyval(d, cubic) + 0.15 * bend + rng.normal(0, 1.0, len(d))
     assert choose_curve(d, bent, P.polyfit(d, bent, 3), 1.0, 6)[1] == "distance"
+    stiff = cg.SensorCurveOptions(material=0.2)                            # the share is an option (GraphOptions)
+    assert choose_curve(d, bent, P.polyfit(d, bent, 3), 1.0, 6, options=stiff) is None
     steps = np.round(size / 100) * 100                                     # three distinct readings: nothing to raise
     assert choose_curve(d, steps, np.polynomial.polynomial.polyfit(d, steps, 3), 1.0, 6) is None
 

@@ -5,7 +5,7 @@ an apparent size a / (d + b) over a distance range of 20:1 leaves a cubic pixels
 reads as an effect (heavy tails as false detections, a trend as lens distortion). After a fit, the readings
 against the fitted distances are regressed on polynomials in d and in 1/d (:mod:`factors.reading`) up to
 ``max_degree``; the curve with the lowest BIC is taken when it changes the curve materially (by more than
-``MATERIAL`` of the reading sigma, RMS over the sighted distances), so a curve the asked one already
+``SensorCurveOptions.material`` of the reading sigma, RMS over the sighted distances), so a curve the asked one already
 follows keeps it. Material here is what the diagnosis calls material: a misfit of a tenth of the sigma is 1 %
 of the reading residuals' variance, the share (``DiagnoseOptions.structure_omega2``) at which their structure
 against the distance would be named ``unexplained:distance``.
@@ -17,20 +17,32 @@ two are scored on every sighting, each under its own noise levels (:func:`better
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
 from factors.reading import BASES, curve, fit_curve
 
-MATERIAL = 0.1           # share of the reading sigma the better curve must move by, RMS over the sightings (1 % of its variance)
-TAIL = 4.0               # readings further than this many robust sigmas off the fitted curve stay out
-SUSPECT_PRUNED = 0.002   # share of the readings pruned beyond which a fit in d is tried against one in 1/d
-MARGIN = 10.0            # the other curve's score must be higher by this (and BIC's penalty for its extra terms)
+
+
+@dataclass(frozen=True)
+class SensorCurveOptions:
+    """When the data move the sensor curve; recorded in model.json ``fit.options.graph.sensor_curve``."""
+
+    material: float = 0.1          # share of the reading sigma the better curve must move by, RMS over the sightings
+    #                                (1 % of the reading variance: what the diagnosis calls material structure)
+    tail: float = 4.0              # readings further than this many robust sigmas off the fitted curve stay out
+    suspect_pruned: float = 0.002  # share of the readings pruned beyond which a fit in d is tried against one in 1/d
+    margin: float = 10.0           # the other curve's score must be higher by this (and BIC's penalty for extra terms)
+
+
+DEFAULTS = SensorCurveOptions()
 
 
 def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, sigma: float, max_degree: int,
-                 basis: str = "distance") -> tuple[np.ndarray, str] | None:
+                 basis: str = "distance", options: SensorCurveOptions = DEFAULTS) -> tuple[np.ndarray, str] | None:
     """(coefficients, basis) of a curve the data demand over the fitted one (else None).
 
     ``distance``/``reading``: the sightings with a reading, distances from the fitted poses; ``poly`` the
@@ -44,7 +56,7 @@ def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, si
     if max_degree <= degree or len(reading) < 10 * (max_degree + 1):
         return None
     res = reading - curve(distance, poly, basis)
-    keep = np.abs(res) < TAIL * 1.4826 * np.median(np.abs(res))
+    keep = np.abs(res) < options.tail * 1.4826 * np.median(np.abs(res))
     d, r = distance[keep], reading[keep]
     n = len(r)
     fits = {}
@@ -57,29 +69,29 @@ def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, si
     if best == (basis, degree):
         return None
     moved = curve(d, fits[best][1], best[0]) - curve(d, poly, basis)
-    return (fits[best][1], best[0]) if np.sqrt(np.mean(moved ** 2)) > MATERIAL * sigma else None
+    return (fits[best][1], best[0]) if np.sqrt(np.mean(moved ** 2)) > options.material * sigma else None
 
 
-def suspect(model: Model, log: Log) -> bool:
+def suspect(model: Model, log: Log, options: SensorCurveOptions = DEFAULTS) -> bool:
     """Whether a calibration shows the marks of a curve that misses near the landmarks: the data raised its
-    degree, or it pruned more than ``SUSPECT_PRUNED`` of the readings (a clean log prunes about 1 in 100,000)."""
+    degree, or it pruned more than ``options.suspect_pruned`` of the readings (a clean log prunes about 1 in 100,000)."""
     degree = model.fit.get("sensor_degree", {})
     n = int(np.sum(np.isfinite(log.obs_reading)))
     return n > 0 and (degree.get("fitted", 0) > degree.get("asked", 0)
-                      or model.fit.get("outliers_pruned", 0) > SUSPECT_PRUNED * n)
+                      or model.fit.get("outliers_pruned", 0) > options.suspect_pruned * n)
 
 
-def better_curve(log: Log, first, other, scores: tuple[float, float]):
+def better_curve(log: Log, first, other, scores: tuple[float, float], options: SensorCurveOptions = DEFAULTS):
     """``other`` (a fit with another sensor curve) when its score (log-likelihood of every sighting of ``log``,
-    each fit under its own noise levels) beats ``first``'s by more than ``MARGIN`` plus BIC's half log n per extra
-    coefficient, and its curve differs materially (by more than ``MATERIAL`` of the reading sigma, RMS over the
+    each fit under its own noise levels) beats ``first``'s by more than ``options.margin`` plus BIC's half log n per extra
+    coefficient, and its curve differs materially (by more than ``options.material`` of the reading sigma, RMS over the
     sightings); else ``first``. The choice is recorded in ``fit.sensor_degree`` (``tried``: each curve's score)."""
     ok = np.isfinite(log.obs_reading)
     extra = len(other.model.reading_poly) - len(first.model.reading_poly)
     d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - other.poses[log.obs_step[ok], :2]).T)
     moved = np.sqrt(np.mean((other.model.reading(d) - first.model.reading(d)) ** 2))
-    take = (scores[1] - MARGIN - 0.5 * extra * np.log(max(int(ok.sum()), 2)) > scores[0]
-            and moved > MATERIAL * min(first.model.reading_sigma, other.model.reading_sigma))
+    take = (scores[1] - options.margin - 0.5 * extra * np.log(max(int(ok.sum()), 2)) > scores[0]
+            and moved > options.material * min(first.model.reading_sigma, other.model.reading_sigma))
     keep = other if take else first
     tried = [{"basis": f.model.reading_basis, "degree": len(f.model.reading_poly) - 1, "score": round(float(c), 1)}
              for f, c in zip((first, other), scores)]

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -25,7 +25,7 @@ from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
-from casm_graph.fit.sensor_degree import better_curve, choose_curve, suspect
+from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.fit.turns import realias
 from casm_graph.graph import table as G
@@ -58,6 +58,7 @@ class GraphOptions:
     realias_after: tuple[int, ...] = (2, 4)   # coarse rounds after which every action's turn-rate alias is re-picked
     full_iterations: int = 15             # LM iterations per full round
     full_rounds: int = 2                  # full rounds (the noise step between them)
+    sensor_curve: SensorCurveOptions = field(default_factory=SensorCurveOptions)   # when the data move the curve
 
     def to_json(self) -> dict:
         return {**asdict(self), "realias_after": list(self.realias_after)}
@@ -184,13 +185,15 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     the sensor polynomial's degree may rise to it when the data demand; ``free_basis``: when the fit in d
     shows a near-range misfit, a fit with the curve in 1/d competes, :mod:`casm_graph.fit.sensor_degree`)."""
     progress = progress or Progress()
+    options = options or GraphOptions()
     first = _fit(log, start, seed, progress, marginals, mixture, options, max_sensor_degree)
-    if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log)):
+    if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log, options.sensor_curve)):
         return first
     progress.stage("the sensor curve in 1/d", None)
     other = _fit(log, start.with_(reading_basis="inverse_distance"), seed, progress, marginals, mixture, options,
                  max_sensor_degree)
-    return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)))
+    return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)),
+                        options.sensor_curve)
 
 
 def sighting_log_likelihood(log: Log, fit: Fit) -> float:
@@ -231,7 +234,8 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
         ok = ~np.isnan(log.obs_reading)         # the readings' distances, kept for distance_range below
         d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[ok]
         better = None if attempt else choose_curve(d, log.obs_reading[ok], model.reading_poly,
-                                                   model.reading_sigma, max_sensor_degree, model.reading_basis)
+                                                   model.reading_sigma, max_sensor_degree, model.reading_basis,
+                                                   o.sensor_curve)
         if better is None:
             break
         model = model.with_(reading_poly=better[0], reading_basis=better[1])   # the data demand another curve:
