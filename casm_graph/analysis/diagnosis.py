@@ -180,7 +180,8 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
     order = np.argsort(ch.time, kind="stable")
     r = ch.residual
     motion = ch.name in MOTION_CHANNELS
-    infl = _inflation(r[order])
+    r_t, t_t = r[order], ch.time[order]                  # in time order: the series tests
+    infl = _inflation(r_t)
     rs = r if ch.leverage is None else r / np.sqrt(np.clip(1.0 - np.nan_to_num(ch.leverage), MIN_SHARE, 1.0))
     dev = np.abs(rs - np.median(rs))
     infl_dev = _inflation(dev[order])
@@ -193,7 +194,7 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
         g = _groups(x[ok], cat, options)
         s_mean, p_mean = anova(r[ok], g, infl)
         if motion:
-            lead, when = feedback_strength(r[order], x[order], ch.time[order], infl, options) \
+            lead, when = feedback_strength(r_t, x[order], t_t, infl, options) \
                 if name in COMMANDED and p_mean < options.structure_p else (0.0, 0.0)
             out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"} if lead <= s_mean else
                        {"name": name, "strength": s_mean, "p": p_mean, "kind": "feedback",

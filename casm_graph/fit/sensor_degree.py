@@ -26,7 +26,6 @@ from casm_graph.models.model import Model
 from factors.reading import BASES, curve, fit_curve
 
 
-
 @dataclass(frozen=True)
 class SensorCurveOptions:
     """When the data move the sensor curve; recorded in model.json ``fit.options.graph.sensor_curve``."""

@@ -205,9 +205,8 @@ def sighting_log_likelihood(log: Log, fit: Fit) -> float:
 
 
 def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool, mixture: bool,
-         options: GraphOptions | None, max_sensor_degree: int) -> Fit:
+         o: GraphOptions, max_sensor_degree: int) -> Fit:
     """One calibration from ``start`` (:func:`fit`'s arguments)."""
-    o = options or GraphOptions()
     t0 = time.perf_counter()
     co = coarse_start(log, start, seed, progress, mixture, o)
     fraction, weight = co.fraction, None
