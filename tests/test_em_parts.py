@@ -88,3 +88,24 @@ def test_ekfs_smoother_with_the_true_model(true_case):
     vel /= np.bincount(act, minlength=len(vel))[:, None]
     rms = np.sqrt(np.mean((vel - m.velocities) ** 2, axis=0))
     assert np.all(rms < [0.005, 0.005, 0.02])                   # eq. 6 at the truth stays near the truth
+
+
+def test_both_action_models_answer_the_same_questions(true_case):
+    """A velocity table and a command map round-trip their parameter vector through the model, and the M-step's
+    least squares on noise-free displacements returns the velocities that made them."""
+    from casm_graph.models.command_model import for_commands
+    from casm_graph.sim.floor import FloorConfig, simulate as simulate_floor
+
+    log, m = true_case
+    floor_log, _ = simulate_floor(FloorConfig(minutes=2, seed=1))
+    cm = for_commands(floor_log.controls, 2, 1, gain=1.0).with_params(np.array([0.01, 0.9, -0.05, 0.02, 1.1]))
+    floor = m.with_action(cm)
+    for lg, model in ((log, m), (floor_log, floor)):
+        act = model.action
+        p = act.params
+        assert model.with_action_params(p + 0.5).action.params == pytest.approx(p + 0.5)
+        moved = act.step_velocities(lg) * lg.dt[:, None]
+        refit = model.with_action_params(np.zeros_like(p)).fitted_to_steps(lg, moved)
+        assert refit.action.params == pytest.approx(p, abs=1e-9)
+        assert refit.to_json()["action_model"]["kind"] == act.kind
+    assert m.action.std_summary() is None and m.action.describe().startswith("action table")

@@ -118,8 +118,7 @@ class Calibration:
             return "\n".join(lines)
         m, log = self.model, self.log
         fit = m.fit
-        kind = "continuous commands " + ",".join(log.control_names) if log.controls is not None \
-            else f"action table, {len(m.action_ids)} actions"
+        kind = m.action.describe()
         lines = [f"casm-graph calibration of {log.source or 'a log'} by {fit.get('method', self.options.method)}",
                  f"  log: {kind}, {log.steps} steps, {len(log.obs_t)} sightings, {log.minutes:.1f} min",
                  f"  fit: {'converged' if fit.get('converged') else 'NOT converged'} after {fit.get('iterations')} "
@@ -129,12 +128,8 @@ class Calibration:
                  ("  reading = " + " + ".join(f"{c:.4g} d^{i}" for i, c in enumerate(m.reading_poly))
                   if m.has("reading") else "  reading: not measured (a bearing-only log)"),
                  "  motion noise per step: " + ", ".join(f"{s:.3g}" for s in m.motion_noise) + " (m, m, rad)"]
-        if log.controls is None and m.velocity_std is not None and np.isfinite(m.velocity_std).any():
-            med = np.nanmedian(m.velocity_std, axis=0)
-            lines.append(f"  action table: median posterior std vx {1000 * med[0]:.1f} mm/s, vy {1000 * med[1]:.1f} mm/s,"
-                         f" w {med[2]:.4f} rad/s")
-        if m.command is not None:
-            lines.append("  command map: " + json.dumps(m.command.to_json().get("kind", "command_poly")))
+        if m.action.std_summary() is not None:
+            lines.append("  {}: {}".format(*m.action.std_summary()))
         pose_sd = np.sqrt(np.nanmean(self.trajectory["sx"] ** 2 + self.trajectory["sy"] ** 2)) \
             if np.isfinite(self.trajectory["sx"]).any() else float("nan")
         lines.append(f"  trajectory: RMS position std {pose_sd:.3f} m")

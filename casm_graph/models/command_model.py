@@ -52,6 +52,8 @@ def lagged(x: np.ndarray, dt: np.ndarray, lag: float, order: int = 1) -> np.ndar
 class CommandModel:
     """f_v(v) = sum a_i (v / scale_v)**i, f_w(w) = sum b_i (w / scale_w)**i, lateral velocity 0."""
 
+    kind = KIND
+
     scale: tuple[float, float]            # command scales (v, w)
     v_coef: np.ndarray                    # (Dv+1,)
     w_coef: np.ndarray                    # (Dw+1,)
@@ -102,6 +104,33 @@ class CommandModel:
         """(n, 3) body-frame (forward, lateral, turn) velocity for each command row (steady state without ``dt``)."""
         bv, bw = self.basis(controls, dt)
         return np.column_stack([bv @ self.v_coef, np.zeros(len(bv)), bw @ self.w_coef])
+
+    def step_velocities(self, log) -> np.ndarray:
+        """(T, 3) the map at each step's ``v, w``, through the lag."""
+        return self.velocities(log.controls, log.dt)
+
+    def fitted_to_steps(self, log, moved: np.ndarray) -> "CommandModel":
+        """The maps' regression on their basis of the steps' displacements ``moved`` (T, 3): forward on the v map,
+        turn on the w map (no sideways motion in a command map)."""
+        bv, bw = self.basis(log.controls, log.dt)
+        dt = np.asarray(log.dt, float)[:, None]
+        a = np.linalg.lstsq(bv * dt, moved[:, 0], rcond=None)[0]
+        b = np.linalg.lstsq(bw * dt, moved[:, 2], rcond=None)[0]
+        return self.with_params(np.concatenate([a, b]))
+
+    def std_summary(self) -> tuple[str, str] | None:
+        """(what, value) of the coefficients' posterior std, None before marginals."""
+        if self.v_std is None:
+            return None
+        return ("command map coefficient std", "v " + ", ".join(f"{x:.2g}" for x in self.v_std)
+                + "; w " + ", ".join(f"{x:.2g}" for x in self.w_std))
+
+    def describe(self) -> str:
+        return "continuous commands v,w"
+
+    def model_fields(self) -> dict:
+        """The :class:`casm_graph.models.model.Model` fields that hold this action model."""
+        return {"command": self}
 
     def to_json(self) -> dict:
         def lst(a):

@@ -12,6 +12,7 @@ import numpy as np
 from casm_graph.io.log import Log, LogError
 from factors.reading import BASES, curve, features
 from casm_graph.io.output import strict
+from casm_graph.models.velocity_table import VelocityTable
 
 SCHEMA = "casm-graph/model/1"
 
@@ -84,29 +85,32 @@ class Model:
         """(n, 3) velocity of each action id in ``action``."""
         return self.velocities[np.searchsorted(self.action_ids, action)]
 
+    @property
+    def action(self):
+        """The action model: a :class:`VelocityTable` of discrete actions, or the continuous commands'
+        :class:`casm_graph.models.command_model.CommandModel`. Both answer ``params``, ``with_params``,
+        ``step_velocities``, ``fitted_to_steps``, ``std_summary``, ``describe`` and ``to_json``."""
+        if self.command is not None:
+            return self.command
+        return VelocityTable(self.action_ids, self.velocities, self.velocity_std)
+
+    def with_action(self, action) -> "Model":
+        """This model with the action model ``action`` (either kind)."""
+        return self.with_(**action.model_fields())
+
+    def with_action_params(self, p: np.ndarray, std: np.ndarray | None = None) -> "Model":
+        """This model with the action model's parameter vector ``p`` (and its std when given)."""
+        return self.with_action(self.action.with_params(p, std))
+
     def step_velocities(self, log) -> np.ndarray:
         """(T, 3) body-frame velocity of every command step of ``log``: the table's row for its action, or the
         command map at its ``v, w`` (through the map's lag)."""
-        if self.command is None:
-            return self.velocity_of(log.action)
-        return self.command.velocities(log.controls, log.dt)
+        return self.action.step_velocities(log)
 
     def fitted_to_steps(self, log, moved: np.ndarray) -> "Model":
         """The action model that best explains ``moved`` (T, 3), each step's body-frame displacement, by least
-        squares (an EM M-step): each action's mean velocity, or the command map's regression on its basis (no
-        sideways motion in a command map); actions never run keep their velocity."""
-        dt = log.dt[:, None]
-        if self.command is None:
-            act = np.searchsorted(self.action_ids, log.action)
-            total, time = np.zeros_like(self.velocities), np.zeros(len(self.action_ids))
-            np.add.at(total, act, moved)
-            np.add.at(time, act, log.dt)
-            return self.with_(velocities=np.where(time[:, None] > 0, total / np.maximum(time, 1e-12)[:, None],
-                                                  self.velocities))
-        bv, bw = self.command.basis(log.controls, log.dt)
-        a = np.linalg.lstsq(bv * dt, moved[:, 0], rcond=None)[0]
-        b = np.linalg.lstsq(bw * dt, moved[:, 2], rcond=None)[0]
-        return self.with_(command=self.command.with_params(np.concatenate([a, b])))
+        squares (an EM M-step): each action's mean velocity, or the command map's regression on its basis."""
+        return self.with_action(self.action.fitted_to_steps(log, moved))
 
     def with_(self, **kw) -> "Model":
         return replace(self, **kw)
@@ -114,8 +118,6 @@ class Model:
     # ------------------------------------------------------------------ JSON
     def to_json(self) -> dict:
         """model.json's content, strict: every NaN or infinity is null (JSON has neither)."""
-        ids = [str(int(a)) for a in self.action_ids]
-        std = self.velocity_std if self.velocity_std is not None else np.full_like(self.velocities, np.nan)
         reading = self.has("reading")
         sensor = {"channels": list(self.channels),
                   "reading_poly": self.reading_poly.tolist() if reading else None,
@@ -128,10 +130,7 @@ class Model:
         if self.reading_poly_cov is not None and reading:
             sensor["reading_poly_cov"] = np.asarray(self.reading_poly_cov).tolist()
             sensor["reading_band"] = self.reading_band()
-        action_model = ({"kind": "table",
-                         "velocities": {a: v.tolist() for a, v in zip(ids, self.velocities)},
-                         "std": {a: s.tolist() for a, s in zip(ids, std)}}
-                        if self.command is None else self.command.to_json())
+        action_model = self.action.to_json()
         return strict({
             "schema": SCHEMA,
             "action_model": action_model,

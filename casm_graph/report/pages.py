@@ -119,13 +119,8 @@ def fit_quality(cal) -> str:
     poses = np.column_stack([tr["x"], tr["y"], tr["theta"]])
     r, b = residuals.observation(poses[log.obs_step], log, m)
     rows = []
-    if m.command is None and m.velocity_std is not None and np.isfinite(m.velocity_std).any():
-        med = np.nanmedian(m.velocity_std, axis=0)
-        rows.append(("action table std (median over actions)",
-                     f"vx {1000 * med[0]:.1f} mm/s, vy {1000 * med[1]:.1f} mm/s, w {med[2]:.4f} rad/s"))
-    if m.command is not None and m.command.v_std is not None:
-        rows.append(("command map coefficient std", "v " + ", ".join(f"{x:.2g}" for x in m.command.v_std)
-                     + "; w " + ", ".join(f"{x:.2g}" for x in m.command.w_std)))
+    if m.action.std_summary() is not None:
+        rows.append(m.action.std_summary())
     if m.reading_poly_cov is not None:
         d = np.linspace(*m.distance_range, 50)
         rows.append(("sensor curve std (median over distances seen)", f"{np.median(m.reading_std(d)):.3g} reading units"))

@@ -88,8 +88,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         progress.stage("start pose", None)
         init = start_of(log, start)
         if from_initialiser:
-            model = start.with_(velocities=init.model.velocities.copy(), command=init.model.command,
-                                reading_poly=np.asarray(init.model.reading_poly, float).copy())
+            model = start.with_action(init.model.action).with_(reading_poly=np.asarray(init.model.reading_poly, float).copy())
     poly = np.asarray(model.reading_poly, float).copy()
     s_r, s_b = float(start.reading_sigma), float(start.bearing_sigma)
     if start_pose is None:
@@ -114,7 +113,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         history["log_likelihood"].append(float(ll))
         err = velocity_errors(model, truth)
         history["velocity_rms"].append(None if err is None else err.tolist())
-        history["velocities"].append(model.velocities if model.command is None else model.command.params)
+        history["velocities"].append(model.action.params)
         history["heading_rms"].append(None if true_heading is None else
                                       float(np.sqrt(np.mean(wrap(mu_a[:, 2] - true_heading) ** 2))))
         history["seconds"].append(time.perf_counter() - t0)

@@ -26,6 +26,7 @@ from casm_graph.graph import table as G
 from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
+from casm_graph.models.velocity_table import VelocityTable
 
 MAX_ITERATIONS = 40
 TOL = 1e-6           # stop when the marginal likelihood improves by less than this fraction
@@ -128,17 +129,14 @@ def laplace_log_likelihood(problem: Problem, st: State, logdet: float) -> float:
 
 
 def _vec(m: Model) -> np.ndarray:
-    action = m.velocities.ravel() if m.command is None else m.command.params
-    return np.concatenate([action, m.reading_poly, np.log([m.reading_sigma, m.bearing_sigma]), np.log(m.motion_noise)])
+    return np.concatenate([m.action.params, m.reading_poly, np.log([m.reading_sigma, m.bearing_sigma]), np.log(m.motion_noise)])
 
 
 def _unvec(x: np.ndarray, like: Model) -> Model:
-    A = like.velocities.size if like.command is None else len(like.command.params)
+    A = len(like.action.params)
     D = len(like.reading_poly)
     sig = np.exp(x[A + D:])
-    action = ({"velocities": x[:A].reshape(-1, 3)} if like.command is None
-              else {"command": like.command.with_params(x[:A])})
-    return like.with_(**action, reading_poly=x[A:A + D], reading_sigma=float(sig[0]), bearing_sigma=float(sig[1]),
+    return like.with_action_params(x[:A]).with_(reading_poly=x[A:A + D], reading_sigma=float(sig[0]), bearing_sigma=float(sig[1]),
                       motion_noise=sig[2:5])
 
 
@@ -149,7 +147,7 @@ def step_graph(log: Log, model: Model) -> tuple[G.Layout, Model]:
         return G.layout(log, model, 1), model
     T = log.steps
     lay = G.Layout(np.arange(T + 1), np.arange(T), np.ones(T, int), log.dt.copy(), log.obs_step.copy(), T)
-    return lay, model.with_(action_ids=np.arange(T), velocities=model.step_velocities(log))
+    return lay, model.with_action(VelocityTable(np.arange(T), model.step_velocities(log)))
 
 
 def em_map(log: Log, model: Model, poses: np.ndarray):

@@ -47,11 +47,11 @@ class ActionPart:
 
     def params(self, model: Model) -> np.ndarray:
         """The model's action parameters (array of ``shape``)."""
-        raise NotImplementedError
+        return np.array(model.action.params, float).reshape(self.shape)
 
     def with_params(self, model: Model, x: np.ndarray, std: np.ndarray | None = None) -> Model:
         """``model`` with action parameters ``x`` (and their std when given)."""
-        raise NotImplementedError
+        return model.with_action_params(np.ravel(x), None if std is None else np.ravel(std))
 
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         """(mean, sigma) of the weak prior on the flattened parameters."""

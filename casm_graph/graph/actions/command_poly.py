@@ -137,12 +137,6 @@ class CommandPoly(ActionPart):
         both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
         self.Bv_obs, self.Bw_obs = both[:, :self.nv], both[:, self.nv:]
 
-    def params(self, model: Model) -> np.ndarray:
-        return model.command.params.copy()
-
-    def with_params(self, model: Model, x: np.ndarray, std: np.ndarray | None = None) -> Model:
-        return model.with_(command=model.command.with_params(x, std))
-
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         cm = model.command
         nominal = for_commands(self.log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)

@@ -35,13 +35,6 @@ class TableActions(ActionPart):
         t_rel = log.t[lay.knots[:-1]] - log.t[0]
         self.m_ctx = {"t": t_rel, "since": t_rel - t_rel[start_idx], "dt": lay.seg_dt * lay.seg_steps}
 
-    def params(self, model: Model) -> np.ndarray:
-        return np.asarray(model.velocities, float).copy()
-
-    def with_params(self, model: Model, x: np.ndarray, std: np.ndarray | None = None) -> Model:
-        kw = {} if std is None else {"velocity_std": np.asarray(std, float).reshape(self.shape)}
-        return model.with_(velocities=np.asarray(x, float).reshape(self.shape), **kw)
-
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(self.n), np.full(self.n, G.VELOCITY_PRIOR_SIGMA)
 

@@ -1,0 +1,68 @@
+"""Action model for discrete actions: the paper's velocity table, one body-frame (vx, vy, w) per action id.
+
+It answers what :class:`casm_graph.models.command_model.CommandModel` answers for continuous commands (its
+parameters as one vector, each step's velocity, the least-squares fit to given displacements, its JSON), so that
+code above the action model never asks which kind a log has.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+KIND = "table"
+
+
+@dataclass(frozen=True)
+class VelocityTable:
+    """Velocity ``velocities[i]`` (m/s, m/s, rad/s) for action ``action_ids[i]``; ``velocity_std`` its posterior std."""
+
+    action_ids: np.ndarray
+    velocities: np.ndarray
+    velocity_std: np.ndarray | None = None
+
+    kind = KIND
+
+    @property
+    def params(self) -> np.ndarray:
+        return np.asarray(self.velocities, float).ravel()
+
+    def with_params(self, p: np.ndarray, std: np.ndarray | None = None) -> "VelocityTable":
+        kw = {} if std is None else {"velocity_std": np.asarray(std, float).reshape(-1, 3)}
+        return replace(self, velocities=np.asarray(p, float).reshape(-1, 3), **kw)
+
+    def step_velocities(self, log) -> np.ndarray:
+        """(T, 3) the row of each step's action."""
+        return self.velocities[np.searchsorted(self.action_ids, log.action)]
+
+    def fitted_to_steps(self, log, moved: np.ndarray) -> "VelocityTable":
+        """Each action's mean velocity over the steps that ran it (displacements ``moved``, (T, 3)); actions never
+        run keep theirs."""
+        act = np.searchsorted(self.action_ids, log.action)
+        total, time = np.zeros_like(self.velocities), np.zeros(len(self.action_ids))
+        np.add.at(total, act, moved)
+        np.add.at(time, act, log.dt)
+        return replace(self, velocities=np.where(time[:, None] > 0, total / np.maximum(time, 1e-12)[:, None],
+                                                 self.velocities))
+
+    def std_summary(self) -> tuple[str, str] | None:
+        """(what, value) of the parameters' posterior std in units, None before marginals."""
+        if self.velocity_std is None or not np.isfinite(self.velocity_std).any():
+            return None
+        med = np.nanmedian(self.velocity_std, axis=0)
+        return ("action table std (median over actions)",
+                f"vx {1000 * med[0]:.1f} mm/s, vy {1000 * med[1]:.1f} mm/s, w {med[2]:.4f} rad/s")
+
+    def describe(self) -> str:
+        return f"action table, {len(self.action_ids)} actions"
+
+    def model_fields(self) -> dict:
+        """The :class:`casm_graph.models.model.Model` fields that hold this action model."""
+        return {"action_ids": self.action_ids, "velocities": self.velocities, "velocity_std": self.velocity_std,
+                "command": None}
+
+    def to_json(self) -> dict:
+        ids = [str(int(a)) for a in self.action_ids]
+        std = self.velocity_std if self.velocity_std is not None else np.full_like(self.velocities, np.nan)
+        return {"kind": KIND, "velocities": {a: v.tolist() for a, v in zip(ids, self.velocities)},
+                "std": {a: s.tolist() for a, s in zip(ids, std)}}
