@@ -109,3 +109,19 @@ def test_both_action_models_answer_the_same_questions(true_case):
         assert refit.action.params == pytest.approx(p, abs=1e-9)
         assert refit.to_json()["action_model"]["kind"] == act.kind
     assert m.action.std_summary() is None and m.action.describe().startswith("action table")
+
+
+def test_a_model_is_made_ready_for_a_log_or_says_why(true_case):
+    """A table is indexed like the log's actions; a table missing one, or a map on a table log, is a LogError."""
+    from casm_graph.io.log import LogError
+    from casm_graph.models.command_model import for_commands
+
+    log, m = true_case
+    extra = m.with_(action_ids=np.append(m.action_ids, m.action_ids.max() + 1),
+                    velocities=np.vstack([m.velocities, [9.0, 9.0, 9.0]]))
+    ready = extra.for_log(log)
+    assert np.array_equal(ready.action_ids, log.action_ids) and np.allclose(ready.velocities, m.velocities)
+    with pytest.raises(LogError, match=r"no velocity for action\(s\) \[%d\]" % m.action_ids[0]):
+        m.with_(action_ids=m.action_ids[1:], velocities=m.velocities[1:]).for_log(log)
+    with pytest.raises(LogError, match="command map .* runs discrete actions"):
+        m.with_action(for_commands(np.ones((3, 2)))).for_log(log)

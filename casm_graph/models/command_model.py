@@ -19,6 +19,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numba import njit
 
+from casm_graph.io.log import LogError
+
 KIND = "command_poly"
 
 
@@ -117,6 +119,16 @@ class CommandModel:
         a = np.linalg.lstsq(bv * dt, moved[:, 0], rcond=None)[0]
         b = np.linalg.lstsq(bw * dt, moved[:, 2], rcond=None)[0]
         return self.with_params(np.concatenate([a, b]))
+
+    def for_log(self, log, source: str = "the model") -> "CommandModel":
+        """The map itself, after checking that ``log`` has the ``v, w`` commands it maps."""
+        if log.controls is None:
+            raise LogError(f"{source} is a command map (continuous commands) and {log.source or 'the log'} runs "
+                           f"discrete actions; calibrate this log first")
+        if tuple(log.control_names) != ("v", "w"):
+            raise LogError(f"commands.csv: the command map needs columns 'v,w' (this log has "
+                           f"{','.join(log.control_names)})")
+        return self
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the coefficients' posterior std, None before marginals."""

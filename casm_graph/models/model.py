@@ -102,6 +102,11 @@ class Model:
         """This model with the action model's parameter vector ``p`` (and its std when given)."""
         return self.with_action(self.action.with_params(p, std))
 
+    def for_log(self, log, source: str = "the model") -> "Model":
+        """This model ready to run on ``log``: a table indexed like its actions, a map checked against its
+        commands; a :class:`LogError` saying why when the two do not fit together."""
+        return self.with_action(self.action.for_log(log, source))
+
     def step_velocities(self, log) -> np.ndarray:
         """(T, 3) body-frame velocity of every command step of ``log``: the table's row for its action, or the
         command map at its ``v, w`` (through the map's lag)."""

@@ -10,6 +10,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from casm_graph.io.log import LogError
+
 KIND = "table"
 
 
@@ -44,6 +46,17 @@ class VelocityTable:
         np.add.at(time, act, log.dt)
         return replace(self, velocities=np.where(time[:, None] > 0, total / np.maximum(time, 1e-12)[:, None],
                                                  self.velocities))
+
+    def for_log(self, log, source: str = "the model") -> "VelocityTable":
+        """The table indexed like ``log``'s actions (no std: it is the log's to give); a clear error when the log
+        has continuous commands or runs an action the table has no velocity for."""
+        if log.action is None:
+            raise LogError(f"{source} has no command map (action_model.kind 'command_poly') for "
+                           f"{log.source or 'the log'}'s continuous commands; calibrate this log first")
+        missing = sorted(set(log.action_ids.tolist()) - set(np.asarray(self.action_ids).tolist()))
+        if missing:
+            raise LogError(f"{source} has no velocity for action(s) {missing[:10]} that the log runs")
+        return VelocityTable(log.action_ids, self.velocities[np.searchsorted(self.action_ids, log.action_ids)])
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the parameters' posterior std in units, None before marginals."""

@@ -1,7 +1,6 @@
 """Diagnosis of a calibrated log: ``diagnose`` in memory (a Calibration or a model), ``run`` as the command does it."""
 from __future__ import annotations
 
-import csv
 from dataclasses import replace
 from pathlib import Path
 
@@ -12,35 +11,14 @@ from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continu
 from casm_graph.analysis.diagnosis import DEFAULTS, DiagnoseOptions, Diagnosis
 from casm_graph.analysis.diagnosis import diagnose as diagnose_table
 from casm_graph.analysis.proposal import ProposalOptions
-from casm_graph.fit import continuous
+from casm_graph.fit import trajectory
 from casm_graph.fit.calibration import Calibration
-from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
 from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
 from casm_graph.models.effects import unresolved
 from casm_graph.models.model import Model
 from casm_graph.report import pages as report
-
-
-def _trajectory_csv(log: Log, model_path: Path) -> np.ndarray | None:
-    """(T+1, 3) poses from RUN/trajectory.csv beside the model, when it is there and fits the log."""
-    tr = model_path.parent / "trajectory.csv"
-    if tr.is_file():
-        with open(tr) as f:
-            rows = list(csv.DictReader(f))
-        if len(rows) == log.steps + 1:
-            try:
-                return np.array([[float(r["x"]), float(r["y"]), float(r["theta"])] for r in rows])
-            except (KeyError, ValueError):
-                pass
-    return None
-
-
-def check_compatible(log: Log, model: Model, source: str) -> None:
-    missing = sorted(set(log.action_ids.tolist()) - set(model.action_ids.tolist()))
-    if missing:
-        raise LogError(f"{source} has no velocity for action(s) {missing[:10]} that the log runs")
 
 
 def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candidates=None, workers: int = 2,
@@ -68,29 +46,17 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     else:
         model = calibration
     check_identifiable(log)
-    source = log.source or "the log"
     unknown = unresolved(model.effects, extra_effects)
     if unknown:
         raise LogError(f"unknown effect(s) {unknown} in the model (pass their classes as extra_effects)")
+    model = model.for_log(log)
+    if poses is None:
+        poses = trajectory.smoothed(log, model, progress)
     if log.controls is not None:
-        if model.command is None:
-            raise LogError(f"the model has no command map (action_model.kind 'command_poly') for {source}'s "
-                           f"continuous commands; calibrate this log first")
-        if poses is None:
-            if progress is not None:
-                progress.stage("start trajectory", None)
-            poses = continuous.fit(log, model, marginals=False, options=continuous.options_of(model)).poses
         graph = calibration.options.command_graph if isinstance(calibration, Calibration) else None
         diag = diagnose_continuous(log, model, poses, progress=progress, extra_effects=extra_effects,
                                    candidates=candidates, options=options, graph=graph)
     else:
-        check_compatible(log, model, "the model")
-        model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
-                            action_ids=log.action_ids, velocity_std=None)
-        if poses is None:
-            if progress is not None:
-                progress.stage("start trajectory", None)
-            poses = ekfs_fit(log, model, max_iterations=1).poses
         diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
                               candidates=candidates, client=client, options=options)
     diag.log, diag.write_report = log, report.diagnosis
@@ -108,7 +74,7 @@ def run(log_dir, model_path, out, workers: int = 2, progress=None, extra_effects
     model = Model.load(model_path)
     log = load(log_dir)
     diag = diagnose(log, model, extra_effects=extra_effects, candidates=candidates, workers=workers,
-                    progress=progress, poses=_trajectory_csv(log, model_path), client=client, before=before)
+                    progress=progress, poses=trajectory.from_run(log, model_path), client=client, before=before)
     if progress is not None:
         progress.stage("report", None)
     diag.save(out, force=force)

@@ -19,15 +19,13 @@ from threadpoolctl import threadpool_limits
 
 from casm_graph.analysis import posterior as P
 from casm_graph.analysis.marginal_likelihood import NoiseLikelihood, continuous_likelihood, likelihood
-from casm_graph.fit import continuous
+from casm_graph.fit import trajectory
 from casm_graph.fit.calibration import Calibration, read_truth_model
-from casm_graph.fit.methods.ekfs_em import fit as ekfs_fit
 from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import atomic_dir, checked_out, json_text
 from casm_graph.models.effects.regional_motion_noise import RegionalMotionNoise
 from casm_graph.models.model import Model
-from casm_graph.pipeline.diagnose import _trajectory_csv, check_compatible
 from casm_graph.report import uncertainty as uncertainty_report
 
 SCHEMA = "casm-graph/posterior/1"
@@ -110,28 +108,11 @@ def prepare(log: Log, model: Model, poses: np.ndarray | None = None,
     ``poses`` when given; else, for an action table, the EKF smoother's (the model indexed like the
     log's actions), for continuous commands a fresh :func:`casm_graph.fit.continuous.fit` of the log.
     """
-    if log.controls is not None:
-        if model.command is None:
-            raise LogError(f"{source} has no command map (action_model.kind 'command_poly') for the log's "
-                           f"continuous commands; calibrate this log first")
-        if log.control_names != ("v", "w"):
-            raise LogError(f"commands.csv: the command map needs columns 'v,w' (this log has "
-                           f"{','.join(log.control_names)})")
-        if RegionalMotionNoise.name in model.effects:
-            raise LogError(f"{source}: uncertainty samples one forward and one turn noise level, not "
-                           f"{RegionalMotionNoise.name}'s per-region ones; calibrate without that effect")
-        if poses is None:
-            poses = continuous.fit(log, model, marginals=False, options=continuous.options_of(model)).poses
-        return model, poses
-    if model.command is not None or log.action is None:
-        raise LogError(f"{source}: uncertainty needs a table action model for a log with an 'action' column "
-                       f"(a command map for one with 'v,w' commands)")
-    check_compatible(log, model, source)
-    model = model.with_(velocities=model.velocities[np.searchsorted(model.action_ids, log.action_ids)],
-                        action_ids=log.action_ids, velocity_std=None)
-    if poses is None:
-        poses = ekfs_fit(log, model, max_iterations=1).poses
-    return model, poses
+    model = model.for_log(log, source)
+    if RegionalMotionNoise.name in model.effects:
+        raise LogError(f"{source}: uncertainty samples one forward and one turn noise level, not "
+                       f"{RegionalMotionNoise.name}'s per-region ones; calibrate without that effect")
+    return model, (trajectory.smoothed(log, model) if poses is None else poses)
 
 
 def mixed_marginals(ml: NoiseLikelihood, samples: np.ndarray, draws: int = P.SamplerOptions.draws, seed: int = 0):
@@ -242,7 +223,7 @@ def run(log_dir, model_path, out, priors: tuple[str, ...] = (), walkers: int | N
         P.parse_prior(s)
     model = Model.load(model_path)
     log = load(log_dir)
-    model, poses = prepare(log, model, _trajectory_csv(log, model_path), model_path.name)
+    model, poses = prepare(log, model, trajectory.from_run(log, model_path), model_path.name)
     unc = compute(log, model, poses, priors, sampler_options(None, walkers, max_steps), seed,
                   read_truth_model(log.source), progress, pool=pool)
     if progress is not None:
