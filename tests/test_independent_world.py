@@ -293,23 +293,6 @@ def test_a_carpet_anywhere_on_the_floor_is_named_and_mapped(tmp_path):
 
 
 @pytest.mark.science
-@pytest.mark.skipif(not FULL, reason="full size only (CASM_FULL=1): two diagnoses of a 4-minute continuous log")
-def test_a_sharp_carpet_takes_a_fine_grid_and_leaves_nothing_behind(tmp_path):
-    """Independent world, continuous robot, seed 9: a carpet 26 % slower with sharp edges. Its field on a 4 x 4 grid
-    left the speed following x (``unexplained:x`` after adding it); the family's 5 x 5 and 6 x 6 members follow
-    the edges (BIC picks a finer one) and the diagnosis after adding the named member reads none."""
-    generate(tmp_path / "log", kind="continuous", minutes=4, seed=9, effect="surface_friction")
-    log = cg.load_log(tmp_path / "log")
-    diag = cg.diagnose(log, cg.calibrate(log, seed=9))
-    assert diag.verdict == "surface_friction", diag.verdict
-    friction = next(c for c in diag.to_json()["candidates"] if c["effect"] == "surface_friction")
-    assert friction["order"] > 4, friction["orders"]
-    fixed = cg.calibrate(log, effects=[diag.to_add()], seed=9)
-    assert cg.diagnose(log, fixed).verdict == "none"
-
-
-
-@pytest.mark.science
 def test_a_camera_latency_named_as_a_lag_comes_with_it_as_a_lookalike(tmp_path):
     """The independent world's camera latency (0.15 s, seed 3, table robot) is named actuator_lag by BIC (-1,912
     against -1,442), but the two fits change the predicted sightings alike: the latency is in the look-alike group,

@@ -16,8 +16,7 @@ import numpy as np
 
 from casm_graph.models.effects.base import Effect, register
 
-NODES = 4                 # nodes per axis of the field's default form (``calibrate --effect surface_friction``)
-FINEST = 6                # nodes per axis of its finest form: a carpet's sharp edge needs nodes close together
+NODES = 4                 # nodes per axis of the field's richest form (the default)
 PRIOR_SIGMA = 0.3         # prior std of each node's slow-down (a carpet rarely costs more than half the speed)
 PAD = 0.05                # share of the visited span added on each side of the field
 MIN_SPAN = 0.5            # m: the field spans at least this much along each axis
@@ -51,14 +50,14 @@ class SurfaceFriction(Effect):
     params = tuple(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES))   # node (i along x, j along y)
     start = (0.0,) * NODES ** 2
     scale = (0.02,) * NODES ** 2
-    orders = tuple(range(1, FINEST + 1))        # 1: a plane; K: nodes per axis
+    orders = (1, 2, 3, NODES)        # 1: a plane; K: nodes per axis
     order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
     distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
                         "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
                "every command covers a smaller fraction of its usual distance there; the slow-down is a smooth field "
-               "over the visited area (a plane, or a grid of 2 x 2 to 6 x 6 nodes).")
+               "over the visited area (a plane, or a grid of 2 x 2 to 4 x 4 nodes).")
 
     def __init__(self, log=None, extent=None, order=None):
         super().__init__(log, order)
