@@ -30,7 +30,8 @@ from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
 from casm_graph.fit.solve import chain_marginals, least_squares
 from casm_graph.graph import augmented, robust
 from casm_graph.graph import table as G
-from casm_graph.graph.actions.command_poly import Layout, layout, sighting_means, velocity_window
+from casm_graph.graph.actions.base import sighting_means, velocity_window
+from casm_graph.graph.actions.command_poly import Layout, layout
 from casm_graph.graph.problem import THETA, Problem, State
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.models.command_model import for_commands

@@ -16,7 +16,7 @@ import numpy as np
 
 import factors
 from casm_graph.graph import noise
-from casm_graph.graph.actions.base import ActionPart, NoiseRules
+from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
 from casm_graph.graph.augmented import motion_function
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.command_model import for_commands
@@ -59,30 +59,6 @@ def layout(log: Log, knot_dt: float) -> Layout:
     idx = np.where(mask, knots[:-1, None] + slot, 0)
     dt = np.where(mask, log.dt[idx], 0.0)
     return Layout(knots, idx, dt, np.searchsorted(knots, log.obs_step))
-
-
-def velocity_window(model: Model, effects) -> float:
-    """Seconds before a sighting over which the sensor hooks' velocity is averaged: the value of the parameter an
-    effect names as its ``velocity_window`` (a latency's delay), 0 without one."""
-    return float(sum(abs(model.effects.get(e.name, {}).get(e.velocity_window, 0.0))
-                     for e in effects if getattr(e, "velocity_window", "")))
-
-
-def sighting_means(log: Log, rows: np.ndarray, window: float) -> np.ndarray:
-    """(N, c) mean of the per-step ``rows`` (T, c) over the ``window`` seconds before each sighting, and at least
-    over the step that ends at it: the displacement a delayed image missed, divided by the delay, when the
-    velocity changes within the delay."""
-    step = np.clip(log.obs_step - 1, 0, log.steps - 1)
-    out = np.asarray(rows, float)[step]
-    tp = log.pose_times
-    t1 = tp[log.obs_step]
-    t0 = np.maximum(t1 - window, tp[0])
-    wide = (t1 - t0 > log.dt[step]) & (log.obs_step > 0)
-    if wide.any():
-        cum = np.vstack([np.zeros(rows.shape[1]), np.cumsum(rows * log.dt[:, None], axis=0)])
-        for j in range(rows.shape[1]):
-            out[wide, j] = (np.interp(t1[wide], tp, cum[:, j]) - np.interp(t0[wide], tp, cum[:, j])) / (t1 - t0)[wide]
-    return out
 
 
 def time_since_command_change(log: Log, frac: float = COMMAND_CHANGE) -> np.ndarray:

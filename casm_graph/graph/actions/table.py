@@ -12,7 +12,7 @@ import numpy as np
 import factors
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import motion_function
-from casm_graph.graph.actions.base import ActionPart
+from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
 from casm_graph.models.model import Model
 
 
@@ -21,6 +21,9 @@ class TableActions(ActionPart):
 
     name = "table"
     layout_type = G.Layout
+    # a level below 1e-4 m or rad per step is numerical: on a two-minute fleet log the forward level fell by a
+    # factor 7-50 at each noise step of a diagnosis's candidate rounds until the information matrix was singular
+    noise_rules = NoiseRules(floor=1e-4)
 
     def __init__(self, log, model: Model, lay, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
         super().__init__(log, model, lay, motion_effects, ls_index, effects)
@@ -34,6 +37,10 @@ class TableActions(ActionPart):
         self.prev_row = np.where(start_idx > 0, act[np.maximum(start_idx - 1, 0)], act)
         t_rel = log.t[lay.knots[:-1]] - log.t[0]
         self.m_ctx = {"t": t_rel, "since": t_rel - t_rel[start_idx], "dt": lay.seg_dt * lay.seg_steps}
+        self.window = velocity_window(model, effects)
+        if self.window > 0:           # each sighting's share of every action over the window before it
+            step_action = np.repeat(act, lay.seg_steps)
+            self.obs_share = sighting_means(log, np.eye(self.A)[step_action], self.window)
 
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(self.n), np.full(self.n, G.VELOCITY_PRIOR_SIGMA)
@@ -82,8 +89,15 @@ class TableActions(ActionPart):
         return e, [Ha, Hb], Hx, d_theta
 
     def sighting_velocity(self, poses, x, theta):
-        """The velocity of the step before each sighting; its derivative is the table row's (effects aside)."""
+        """The velocity of the step before each sighting, or with a velocity window (a latency's delay) the mean
+        over the window, which spans an action change when one falls within it; the derivative is the table rows'
+        (effects aside)."""
         v = self.step_velocity(poses, x, theta)
+        if self.window > 0:
+            dv = np.zeros((len(self.log.obs_t), 3, self.n))
+            for c in range(3):
+                dv[:, c, c::3] = self.obs_share
+            return sighting_means(self.log, np.repeat(v, self.lay.seg_steps, axis=0), self.window), dv
         step = np.clip(self.log.obs_step - 1, 0, len(v) - 1)
         row = self.lay.seg_action[step]
         dv = np.zeros((len(step), 3, self.n))
