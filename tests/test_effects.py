@@ -204,3 +204,26 @@ def test_lag_members_average_their_step_response_over_each_step(order):
     ctx = {"since": since, "dt": np.full(4, dt), "v_prev": np.tile([1.0, 0.5, -2.0], (4, 1))}
     got = get(f"actuator_lag:{order}")().velocity(np.array([tau]), np.zeros((4, 3)), ctx)
     np.testing.assert_allclose(got, np.outer(want, [1.0, 0.5, -2.0]), rtol=1e-10)
+
+
+def test_a_table_latency_sees_the_mean_velocity_over_its_delay():
+    """With a latency in the model the table's sighting velocity is the mean over the delay before each sighting
+    (an action change inside it counts), exactly linear in the table rows; without one, the step before's."""
+    from casm_graph.graph.actions.base import sighting_means
+
+    log, truth = simulate(SimConfig(minutes=1, seed=2))
+    m = paper_start(log)
+    m = m.with_(velocities=np.array([truth["action_model"]["velocities"][str(a)] for a in m.action_ids]))
+    poses = np.zeros((log.steps + 1, 3))
+    step_v = m.step_velocities(log)
+    plain = Problem(log, m, lay=None)
+    v0, _ = plain.action.sighting_velocity(poses, plain.action.params(m), np.zeros(0))
+    assert np.allclose(v0, step_v[np.clip(log.obs_step - 1, 0, log.steps - 1)])
+    delay = 0.2
+    late = m.with_(effects={"camera_latency": {"delay": delay}})
+    pb = Problem(log, late, [REGISTRY["camera_latency"](log)], theta=np.array([delay]))
+    x = pb.action.params(late)
+    v, dv = pb.action.sighting_velocity(poses, x, np.array([delay]))
+    assert np.allclose(v, sighting_means(log, step_v, delay))
+    assert np.allclose(np.einsum("nci,i->nc", dv, np.ravel(x)), v)
+    assert np.abs(v - v0).max() > 0.05               # some sightings follow an action change within the delay

@@ -293,14 +293,28 @@ def test_a_carpet_anywhere_on_the_floor_is_named_and_mapped(tmp_path):
 
 
 @pytest.mark.science
-def test_a_camera_latency_named_as_a_lag_comes_with_it_as_a_lookalike(tmp_path):
-    """The independent world's camera latency (0.15 s, seed 3, table robot) is named actuator_lag by BIC (-1,912
-    against -1,442), but the two fits change the predicted sightings alike: the latency is in the look-alike group,
-    with what would separate them."""
+def test_a_strong_latency_of_a_continuous_robot_is_not_taken_for_a_lag(tmp_path):
+    """Independent world, continuous robot, seed 7, 4 minutes: a camera latency of 0.175 s. The base's smoothed
+    poses take the delayed images in, so they resemble the lag's; the latency has to move them back. Settled until
+    the log-likelihood stops moving, the latency wins (with two rounds the lag did, by 950 in BIC, and adding it
+    left the trajectory 0.051 m from the truth against 0.010 m with the latency)."""
+    generate(tmp_path / "log", kind="continuous", minutes=4, seed=7, effect="camera_latency")
+    log = cg.load_log(tmp_path / "log")
+    diag = cg.diagnose(log, cg.calibrate(log, seed=7), candidates=["actuator_lag", "camera_latency"])
+    assert diag.verdict == "camera_latency", [(c.effect, c.delta_bic) for c in diag.candidates]
+    assert abs(diag.candidates[0].parameters["delay"] - 0.175) < 0.01
+
+@pytest.mark.science
+def test_a_camera_latency_is_named_with_the_lag_as_its_lookalike(tmp_path):
+    """The independent world's camera latency (0.168 s, seed 3, table robot) is named: its back-projection takes the
+    mean velocity over the delay, across an action change, and its fit is settled in three rounds (with two, and
+    the step-before velocity, the lag won by -1,912 against -1,442 at a delay of 0.129 s). The two fits change
+    the predicted sightings alike: the lag is in the look-alike group, with what would separate them."""
     generate(tmp_path / "log", kind="table", minutes=6, seed=3, effect="camera_latency", min_range=0.8)
     log = cg.load_log(tmp_path / "log")
     diag = cg.diagnose(log, cg.calibrate(log), candidates=["actuator_lag", "camera_latency"])
-    assert diag.verdict in ("actuator_lag", "camera_latency")
+    assert diag.verdict == "camera_latency", [(c.effect, c.delta_bic) for c in diag.candidates]
+    assert abs(diag.candidates[0].parameters["delay"] - 0.168) < 0.02
     assert [g["effects"] for g in diag.lookalikes] == [[diag.verdict, ({"actuator_lag", "camera_latency"}
                                                                        - {diag.verdict}).pop()]]
     text = " ".join(diag.words)
