@@ -7,12 +7,16 @@ drove. The sensor curve's band appears where the log measures readings.
 from __future__ import annotations
 
 import html
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import corner
 import numpy as np
 from matplotlib.figure import Figure
 
+from casm_graph.models.command_model import CommandModel
+from casm_graph.models.velocity_table import VelocityTable
 from casm_graph.report.pages import STYLE, png, subplots
 from casm_graph.sim.aibo import true_reading
 
@@ -44,7 +48,7 @@ def true_values(unc) -> dict:
 
 def true_table(unc) -> np.ndarray | None:
     t = unc.truth
-    if t is None or unc.model.command is not None:
+    if t is None or unc.model.action.kind != VelocityTable.kind:
         return None
     tab = t.get("action_model", {}).get("velocities", {})
     ids = [str(int(a)) for a in unc.model.action_ids]
@@ -178,14 +182,14 @@ def assess(unc) -> dict:
                         f"follows the prior ({pr.describe()})")
             flags[n] = "weak"
             if n.startswith("motion_noise"):
-                what = "velocity table" if unc.model.command is None else "command maps"
+                what = SECTIONS[unc.model.action.kind].noun
                 advice.append(f"{n}: a longer log (the interval narrows roughly as 1/sqrt(length)) or a more "
                               f"precise sensor; until then the {what}' std below already includes the "
                               f"spread this level leaves")
             else:
                 advice.append(f"{n}: more observations of this channel")
     m = unc.model
-    out = (_assess_table if m.command is None else _assess_command)(unc, known, weak, advice)
+    out = SECTIONS[m.action.kind].assess(unc, known, weak, advice)
     gaps, vis = [], (np.nan, np.nan)
     if m.has("reading") and len(seen_distances(unc)):
         band_std = m.reading_std(np.linspace(*m.distance_range, 50))
@@ -354,6 +358,21 @@ def _velocity_table(unc, verdict) -> str:
     return cover + f"<table>{head}{''.join(rows)}</table>"
 
 
+@dataclass(frozen=True)
+class ActionSection:
+    """What the page says of one kind of action model: its name, what the log pins down of it, how it is shown."""
+
+    noun: str
+    assess: Callable      # (unc, known, weak, advice) -> the verdict's part on the action model
+    show: Callable        # (unc, verdict) -> its figure and table, HTML
+
+
+SECTIONS = {VelocityTable.kind: ActionSection("velocity table", _assess_table,
+                                              lambda unc, v: png(velocity_std_figure(unc, v)) + _velocity_table(unc, v)),
+            CommandModel.kind: ActionSection("command maps", _assess_command,
+                                             lambda unc, v: png(command_map_figure(unc, v)) + _command_table(unc))}
+
+
 def write(out: Path, unc) -> None:
     """report.html, corner.png and trace.png in ``out``."""
     out = Path(out)
@@ -368,12 +387,9 @@ def write(out: Path, unc) -> None:
     warn = "".join(f"<p class='bad'>{e(n)}</p>" for n in ch.notes)
     sensor = (f"<h2>Sensor curve</h2>{png(sensor_band_figure(unc, verdict))}"
               if np.isfinite(verdict["visited"][0]) else "")      # only where the log measures readings
-    if unc.model.command is None:
-        action = (f"<h2>Velocity table (Laplace marginals averaged over the noise posterior)</h2>"
-                  f"{png(velocity_std_figure(unc, verdict))}{_velocity_table(unc, verdict)}")
-    else:
-        action = (f"<h2>Command maps (Laplace marginals averaged over the noise posterior)</h2>"
-                  f"{png(command_map_figure(unc, verdict))}{_command_table(unc)}")
+    section = SECTIONS[unc.model.action.kind]
+    action = (f"<h2>{section.noun.capitalize()} (Laplace marginals averaged over the noise posterior)</h2>"
+              f"{section.show(unc, verdict)}")
     integrated = ", ".join(unc.ml.integrated_out)
     body = f"""<!doctype html><html><head><meta charset="utf-8"><title>casm-graph uncertainty</title>
 <style>{STYLE}</style></head><body>
