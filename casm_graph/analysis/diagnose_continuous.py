@@ -134,7 +134,9 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     effects: the profiled ones (:data:`casm_graph.fit.continuous.EFFECTS`) by their profile, every other
     applicable least-squares effect fitted through its hooks on the same coarse graph. Each candidate is settled
     in ``options.settle_rounds`` rounds (a latency's velocity window follows its delay from one to the next), the
-    base it is compared with alike. ``candidates``: names of the effects to try (default: every applicable one);
+    base it is compared with alike; the leaders (the candidates a verdict or a look-alike group could name) and the
+    base are then settled until their log-likelihoods stop moving (``options.decide_rounds``), since an effect
+    whose optimum lies away from the base's poses needs more rounds to reach it than one whose optimum is near. ``candidates``: names of the effects to try (default: every applicable one);
     ``graph``: the knot spacings (default: the model's own, :func:`casm_graph.fit.continuous.options_of`)."""
     t0 = time.perf_counter()
     o = options
@@ -168,15 +170,22 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     start = full[coarse.knots]
     n = CT.residual_rows(log, coarse, cuse)
     base_prediction = None
+    settles = {}              # candidate -> how to settle it again, for the leaders' decision
+
+    def settle_base(rounds):
+        return CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=rounds,
+                                         iterations=search.iterations)
     if todo or hooked:        # every candidate scored against one base, settled as they are
-        ll0, _, pb0, st0 = CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=o.settle_rounds,
-                                                     iterations=search.iterations)
+        ll0, _, pb0, st0 = settle_base(o.settle_rounds)
         base_prediction = predicted_sightings(pb0, st0)
     for name in todo:
         prof = CT.profile(log, base, name, own, options=search, knot_dt=graph.coarse_knot_dt)
-        ll, _, pb, s = CT.settled_log_likelihood(log, coarse, CT.with_effect(model, name, prof.value, prof.order),
-                                                 cuse, start, own, rounds=o.settle_rounds,
-                                                 iterations=search.iterations)
+        lagged = CT.with_effect(model, name, prof.value, prof.order)
+
+        def settle_profiled(rounds, lagged=lagged):
+            return CT.settled_log_likelihood(log, coarse, lagged, cuse, start, own, rounds=rounds,
+                                             iterations=search.iterations)
+        ll, _, pb, s = settle_profiled(o.settle_rounds)
         gain = float(ll - ll0)
         eff = REGISTRY[name]
         (param,) = eff.params
@@ -187,6 +196,7 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
                                parameters={param: prof.value, **({"order": prof.order} if prof.order > 1 else {})},
                                heldout_skipped=NO_FOLDS,
                                prediction=predicted_sightings(pb, s)))
+        settles[id(cands[-1])] = (settle_profiled, prof.order)
         if progress is not None:
             progress.step(1)
     for e in hooked:
@@ -195,18 +205,37 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
             if progress is not None:
                 progress.step(1)
             continue
-        ll, m, pb, s = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=o.settle_rounds,
-                                                 iterations=search.iterations)
+        def settle_hooked(rounds, e=e):
+            return CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=rounds,
+                                             iterations=search.iterations)
+        ll, m, pb, s = settle_hooked(o.settle_rounds)
         gain = float(ll - ll0)
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
                                parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
                                heldout_skipped=NO_FOLDS,
                                prediction=predicted_sightings(pb, s)))
+        settles[id(cands[-1])] = (settle_hooked, e.free_parameters())
         if progress is not None:
             progress.step(1)
     cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
     cands.sort(key=lambda c: c.delta_bic)
+    leaders = [c for c in cands if id(c) in settles and c.delta_bic <= o.bic_support
+               and c.delta_bic <= o.lookalike_gain * cands[0].delta_bic]
+    if len(leaders) > 1 and o.decide_rounds > o.settle_rounds:
+        if progress is not None:
+            progress.stage("settling the leaders", len(leaders), unit="effects")
+        ll0, _, pb0, st0 = settle_base(o.decide_rounds)
+        base_prediction = predicted_sightings(pb0, st0)
+        for c in leaders:
+            again, k = settles[id(c)]
+            ll, _, pb, s = again(o.decide_rounds)
+            c.delta_log_likelihood = float(ll - ll0)
+            c.delta_bic = -2 * c.delta_log_likelihood + k * np.log(n)
+            c.prediction = predicted_sightings(pb, s)
+            if progress is not None:
+                progress.step(1)
+        cands.sort(key=lambda c: c.delta_bic)
     names = [*(n for n in CT.EFFECTS if n not in skipped and wanted(n)), *(e.name for e in hooked)]
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
     explains = {n: kinds[n].explains for n in names}

@@ -90,10 +90,13 @@ class DiagnoseOptions:
     fold_tol: float = 1e-5             # relative cost change that ends a fold fit (about 0.1 nat on these logs)
     heldout_gate: float = 0.0          # candidates with delta BIC below this get held-out folds
     settle_iterations: int = 8         # continuous logs: LM iterations re-settling the model before its residuals
-    settle_rounds: int = 12            # continuous logs: noise step and LM rounds settling each candidate and the base,
-    #                                    at most (they stop when the log-likelihood moves by less than a nat): two left
-    #                                    a latency short of the lag whose poses the base's resemble (continuous seeds 7,
-    #                                    9, 10: the lag ahead by 53-950; settled, the latency by 138-1,100)
+    settle_rounds: int = 2             # continuous logs: noise step and LM rounds settling each candidate and the base
+    decide_rounds: int = 40            # continuous logs: at most this many rounds, until the log-likelihood moves by
+    #                                    less than a nat, re-settle the base and the leaders (supported candidates with at
+    #                                    least ``lookalike_gain`` of the best's delta BIC) before the verdict: with two
+    #                                    rounds a latency lost to the lag whose poses the base's resemble (independent
+    #                                    world, continuous seeds 7, 9, 10: the lag ahead by 53-950; settled, the latency
+    #                                    by 138-1,100)
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
