@@ -91,12 +91,13 @@ class DiagnoseOptions:
     heldout_gate: float = 0.0          # candidates with delta BIC below this get held-out folds
     settle_iterations: int = 8         # continuous logs: LM iterations re-settling the model before its residuals
     settle_rounds: int = 2             # continuous logs: noise step and LM rounds settling each candidate and the base
-    decide_rounds: int = 40            # continuous logs: at most this many rounds, until the log-likelihood moves by
-    #                                    less than a nat, re-settle the base and the leaders (supported candidates with at
-    #                                    least ``lookalike_gain`` of the best's delta BIC) before the verdict: with two
-    #                                    rounds a latency lost to the lag whose poses the base's resemble (independent
-    #                                    world, continuous seeds 7, 9, 10: the lag ahead by 53-950; settled, the latency
-    #                                    by 138-1,100)
+    decide_rounds: int = 0             # continuous logs: when above settle_rounds, re-settle the base and the leaders
+    #                                    (supported candidates with at least ``lookalike_gain`` of the best's delta BIC)
+    #                                    for at most this many rounds, until the log-likelihood moves by less than a nat,
+    #                                    before the verdict. Off by default: it names the independent world's strong
+    #                                    latencies (continuous seeds 7, 9, 10: 40 rounds, the latency ahead by 138-1,100;
+    #                                    with two the lag by 53-950), but a two-minute lag world then goes to the latency
+    #                                    (-24,878 against -24,663), the lag's delay held at its two-round profile
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
