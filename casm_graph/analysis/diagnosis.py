@@ -80,10 +80,10 @@ class DiagnoseOptions:
     lookalike_gain: float = 0.5        # ... and the runner-up gains at least this share of the verdict's delta BIC
     screen_share: float = 0.25         # action tables: a candidate is fitted only when the score test predicts a gain
     #                                    (twice the log-likelihood) of at least this share of its BIC penalty (0: all)
-    candidate_rounds: int = 3          # action tables: noise-step rounds fitting each candidate (and the base): with
-    #                                    two, a latency whose poses must move from the base's lost to the lag they
-    #                                    resemble (independent world, table seed 3: -1,820 against -1,912; three: -2,158
-    #                                    against -2,053, the truth's delay 0.168 s fitted 0.165)
+    candidate_rounds: int = 2          # action tables: noise-step rounds fitting each candidate (and the base). Three
+    #                                    let a latency whose poses must move from the base's reach its optimum (table
+    #                                    seed 3: -2,158 against the lag's -2,053; with two -1,820 against -1,912, its
+    #                                    look-alike), but cost 1.16x the diagnosis (Aibo lag10: about 3.0x calibrate)
     candidate_iterations: int = 8      # and LM iterations per round
     folds: int = 3                     # time-blocked held-out folds
     fold_iterations: int = 4           # LM iterations bounding each fold's fits
