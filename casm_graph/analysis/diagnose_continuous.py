@@ -134,9 +134,10 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     effects: the profiled ones (:data:`casm_graph.fit.continuous.EFFECTS`) by their profile, every other
     applicable least-squares effect fitted through its hooks on the same coarse graph. Each candidate is settled
     in ``options.settle_rounds`` rounds (a latency's velocity window follows its delay from one to the next), the
-    base it is compared with alike; the leaders (the candidates a verdict or a look-alike group could name) and the
-    base are then settled until their log-likelihoods stop moving (``options.decide_rounds``), since an effect
-    whose optimum lies away from the base's poses needs more rounds to reach it than one whose optimum is near. ``candidates``: names of the effects to try (default: every applicable one);
+    base it is compared with alike. With ``options.decide_rounds`` above that (off by default), the leaders (the
+    candidates a verdict or a look-alike group could name) and the base are then settled until their
+    log-likelihoods stop moving: an effect whose optimum lies away from the base's poses needs more rounds to reach
+    it than one whose optimum is near. ``candidates``: names of the effects to try (default: every applicable one);
     ``graph``: the knot spacings (default: the model's own, :func:`casm_graph.fit.continuous.options_of`)."""
     t0 = time.perf_counter()
     o = options
