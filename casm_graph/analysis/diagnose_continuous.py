@@ -230,7 +230,8 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
         base_prediction = predicted_sightings(pb0, st0)
         for c in leaders:
             again, k = settles[id(c)]
-            ll, _, pb, s = again(o.decide_rounds)
+            ll, m, pb, s = again(o.decide_rounds)
+            c.parameters = dict(m.effects.get(c.effect, c.parameters))    # a hooked effect's moved with the rounds
             c.delta_log_likelihood = float(ll - ll0)
             c.delta_bic = -2 * c.delta_log_likelihood + k * np.log(n)
             c.prediction = predicted_sightings(pb, s)

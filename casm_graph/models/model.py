@@ -83,7 +83,7 @@ class Model:
 
     def velocity_of(self, action: np.ndarray) -> np.ndarray:
         """(n, 3) velocity of each action id in ``action``."""
-        return self.velocities[np.searchsorted(self.action_ids, action)]
+        return VelocityTable(self.action_ids, self.velocities).velocity_of(action)
 
     @property
     def action(self):

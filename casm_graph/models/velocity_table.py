@@ -33,9 +33,13 @@ class VelocityTable:
         kw = {} if std is None else {"velocity_std": np.asarray(std, float).reshape(-1, 3)}
         return replace(self, velocities=np.asarray(p, float).reshape(-1, 3), **kw)
 
+    def velocity_of(self, action: np.ndarray) -> np.ndarray:
+        """(n, 3) the row of each action id in ``action``."""
+        return self.velocities[np.searchsorted(self.action_ids, action)]
+
     def step_velocities(self, log) -> np.ndarray:
         """(T, 3) the row of each step's action."""
-        return self.velocities[np.searchsorted(self.action_ids, log.action)]
+        return self.velocity_of(log.action)
 
     def fitted_to_steps(self, log, moved: np.ndarray) -> "VelocityTable":
         """Each action's mean velocity over the steps that ran it (displacements ``moved``, (T, 3)); actions never
@@ -56,7 +60,7 @@ class VelocityTable:
         missing = sorted(set(log.action_ids.tolist()) - set(np.asarray(self.action_ids).tolist()))
         if missing:
             raise LogError(f"{source} has no velocity for action(s) {missing[:10]} that the log runs")
-        return VelocityTable(log.action_ids, self.velocities[np.searchsorted(self.action_ids, log.action_ids)])
+        return VelocityTable(log.action_ids, self.velocity_of(log.action_ids))
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the parameters' posterior std in units, None before marginals."""

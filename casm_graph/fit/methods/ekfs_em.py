@@ -88,7 +88,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         progress.stage("start pose", None)
         init = start_of(log, start)
         if from_initialiser:
-            model = start.with_action(init.model.action).with_(reading_poly=np.asarray(init.model.reading_poly, float).copy())
+            model = start.with_action(init.model.action).with_(
+                reading_poly=np.asarray(init.model.reading_poly, float).copy())
     poly = np.asarray(model.reading_poly, float).copy()
     s_r, s_b = float(start.reading_sigma), float(start.bearing_sigma)
     if start_pose is None:

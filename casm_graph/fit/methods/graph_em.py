@@ -129,15 +129,16 @@ def laplace_log_likelihood(problem: Problem, st: State, logdet: float) -> float:
 
 
 def _vec(m: Model) -> np.ndarray:
-    return np.concatenate([m.action.params, m.reading_poly, np.log([m.reading_sigma, m.bearing_sigma]), np.log(m.motion_noise)])
+    return np.concatenate([m.action.params, m.reading_poly, np.log([m.reading_sigma, m.bearing_sigma]),
+                           np.log(m.motion_noise)])
 
 
 def _unvec(x: np.ndarray, like: Model) -> Model:
     A = len(like.action.params)
     D = len(like.reading_poly)
     sig = np.exp(x[A + D:])
-    return like.with_action_params(x[:A]).with_(reading_poly=x[A:A + D], reading_sigma=float(sig[0]), bearing_sigma=float(sig[1]),
-                      motion_noise=sig[2:5])
+    return like.with_action_params(x[:A]).with_(reading_poly=x[A:A + D], reading_sigma=float(sig[0]),
+                                                bearing_sigma=float(sig[1]), motion_noise=sig[2:5])
 
 
 def step_graph(log: Log, model: Model) -> tuple[G.Layout, Model]:

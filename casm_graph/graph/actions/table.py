@@ -38,9 +38,11 @@ class TableActions(ActionPart):
         t_rel = log.t[lay.knots[:-1]] - log.t[0]
         self.m_ctx = {"t": t_rel, "since": t_rel - t_rel[start_idx], "dt": lay.seg_dt * lay.seg_steps}
         self.window = velocity_window(model, effects)
-        if self.window > 0:           # each sighting's share of every action over the window before it
-            step_action = np.repeat(act, lay.seg_steps)
-            self.obs_share = sighting_means(log, np.eye(self.A)[step_action], self.window)
+        if self.window > 0:           # each sighting's share of every action over the window: its velocity's derivative
+            share = sighting_means(log, np.eye(self.A)[np.repeat(act, lay.seg_steps)], self.window)
+            self.obs_dv = np.zeros((len(log.obs_t), 3, self.n))
+            for c in range(3):
+                self.obs_dv[:, c, c::3] = share
 
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(self.n), np.full(self.n, G.VELOCITY_PRIOR_SIGMA)
@@ -94,10 +96,7 @@ class TableActions(ActionPart):
         (effects aside)."""
         v = self.step_velocity(poses, x, theta)
         if self.window > 0:
-            dv = np.zeros((len(self.log.obs_t), 3, self.n))
-            for c in range(3):
-                dv[:, c, c::3] = self.obs_share
-            return sighting_means(self.log, np.repeat(v, self.lay.seg_steps, axis=0), self.window), dv
+            return sighting_means(self.log, np.repeat(v, self.lay.seg_steps, axis=0), self.window), self.obs_dv
         step = np.clip(self.log.obs_step - 1, 0, len(v) - 1)
         row = self.lay.seg_action[step]
         dv = np.zeros((len(step), 3, self.n))
