@@ -2,7 +2,8 @@
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/proposal.py --effects heading_speed time_speed --seeds 0 1
 
-For each uncataloged effect and seed: an action-table log of the independent world (tests/worlds),
+For each uncataloged effect and seed: an action-table log (``--kind continuous``: v,w commands) of the
+independent world (tests/worlds),
 calibrate, diagnose, and when the verdict is ``unexplained`` the proposal's equation; then calibrate with
 the proposal and report the fitted equation, the position RMS against the truth before and after, and the
 next verdict. One JSON line per log with --json.
@@ -27,9 +28,9 @@ def position_rms(cal, log) -> float:
     return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
-def one(effect: str, seed: int, minutes: float) -> dict:
+def one(effect: str, seed: int, minutes: float, kind: str = "table") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        W.generate(tmp, kind="table", minutes=minutes, seed=seed, effect=None if effect == "none" else effect,
+        W.generate(tmp, kind=kind, minutes=minutes, seed=seed, effect=None if effect == "none" else effect,
                    min_range=0.8)
         truth = json.loads((Path(tmp) / "world_truth.json").read_text())
         log = cg.load_log(tmp)
@@ -51,11 +52,12 @@ def main():
     ap.add_argument("--effects", nargs="+", default=["heading_speed", "position_drift_speed", "time_speed", "none"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--minutes", type=float, default=6.0)
+    ap.add_argument("--kind", choices=("table", "continuous"), default="table")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     for effect in a.effects:
         for seed in a.seeds:
-            row = one(effect, seed, a.minutes)
+            row = one(effect, seed, a.minutes, a.kind)
             print(f"{effect} seed {seed} (s={row['strength']}): {row['verdict']}; proposal {row['proposal']}; "
                   f"fitted {row.get('fitted')}; position RMS {[round(x, 4) for x in row['position_rms']]}; "
                   f"after {row.get('verdict_after')}", flush=True)

@@ -12,7 +12,7 @@ from gtsam.symbol_shorthand import V, X
 import casm_graph as cg
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.methods import METHODS
-from casm_graph.fit.methods.graph import world_std
+from casm_graph.fit.solve import world_std
 from casm_graph.fit.outliers import prune
 from casm_graph.fit.solve import RIDGES, chain_marginals, marginals
 from casm_graph.graph.chain import arrow_blocks, arrow_inverse, arrow_solver, solve_arrow

@@ -28,7 +28,7 @@ from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions,
                                            lookalike_words, lookalikes, discover, open_loop_error,
                                            predicted_sightings, structures, verdict)
 from casm_graph.fit import continuous as CT
-from casm_graph.fit.methods.base import Fit
+from casm_graph.fit.result import Fit
 from casm_graph.fit.residuals import channels
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented

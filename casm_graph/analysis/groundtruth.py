@@ -16,7 +16,7 @@ import numpy as np
 
 import factors
 from casm_graph.fit import continuous as CT
-from casm_graph.fit.methods.base import Fit, Progress
+from casm_graph.fit.result import Fit, Progress
 from casm_graph.io.log import Log, LogError
 from casm_graph.models.command_model import CommandModel
 

@@ -802,3 +802,12 @@ def continuous_likelihood(log: Log, model: Model, poses: np.ndarray, iterations:
     problem = Problem(log, model, effects, lay=lay, gate=use, poses=kp)
     st, _ = least_squares(problem, problem.state(kp, model), max_iterations=iterations)
     return ContinuousMarginalLikelihood(problem, st, model)
+
+
+LIKELIHOODS = {"table": likelihood, "command_poly": continuous_likelihood}     # by the model's ``action.kind``
+
+
+def noise_likelihood(log: Log, model: Model, poses: np.ndarray) -> NoiseLikelihood:
+    """p(O | noise levels) of ``model`` on ``log``, linearised at the MAP from ``poses`` (T+1, 3), in the form of
+    its kind of action model: an action table's on a pose every step, a command map's on its calibration's knots."""
+    return LIKELIHOODS[model.action.kind](log, model, poses)

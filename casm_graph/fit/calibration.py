@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from casm_graph.fit.continuous import CommandGraphOptions
-from casm_graph.fit.methods.base import Fit
+from casm_graph.fit.result import Fit
 from casm_graph.fit.methods.graph import GraphOptions
 from casm_graph.io.log import Log
 from casm_graph.io.output import atomic_dir, json_text

@@ -25,9 +25,8 @@ from gtsam.symbol_shorthand import X
 
 from casm_graph.fit import turns
 from casm_graph.fit import windows as W
-from casm_graph.fit.methods.base import Fit, Progress
-from casm_graph.fit.methods.graph import RIDGE_WARNING, world_std
-from casm_graph.fit.solve import chain_marginals, least_squares
+from casm_graph.fit.result import Fit, Progress
+from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.graph import augmented, robust
 from casm_graph.graph import table as G
 from casm_graph.graph.actions.base import sighting_means, velocity_window

@@ -26,6 +26,18 @@ class History:
     converged: bool = False
 
 
+RIDGE_WARNING = ("the fitted graph is nearly singular (a poor fit or a log that cannot pin the model down): "
+                 "standard deviations computed with a ridge of {:g} x the largest information; treat them as lower bounds")
+
+
+def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) -> np.ndarray:
+    """Map-frame (sx, sy, stheta) from Pose2 marginals, which live in the body frame (GTSAM's tangent)."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    cov = R @ body_cov_xy @ np.transpose(R, (0, 2, 1))
+    return np.column_stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), body_std[:, 2]])
+
+
 def _damping(keys_dims, lam: float) -> gtsam.GaussianFactorGraph:
     g = gtsam.GaussianFactorGraph()
     s = np.sqrt(lam)

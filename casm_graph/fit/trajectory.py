@@ -13,13 +13,22 @@ from casm_graph.io.log import Log
 from casm_graph.models.model import Model
 
 
+def _ekfs_pass(log: Log, model: Model) -> np.ndarray:
+    return ekfs_fit(log, model, max_iterations=1).poses
+
+
+def _command_graph(log: Log, model: Model) -> np.ndarray:
+    return continuous.fit(log, model, marginals=False, options=continuous.options_of(model)).poses
+
+
+SMOOTHERS = {"table": _ekfs_pass, "command_poly": _command_graph}     # by the model's ``action.kind``
+
+
 def smoothed(log: Log, model: Model, progress=None) -> np.ndarray:
     """(T+1, 3) poses of ``log`` under ``model`` (made ready for the log by :meth:`Model.for_log`)."""
     if progress is not None:
         progress.stage("start trajectory", None)
-    if model.command is not None:
-        return continuous.fit(log, model, marginals=False, options=continuous.options_of(model)).poses
-    return ekfs_fit(log, model, max_iterations=1).poses
+    return SMOOTHERS[model.action.kind](log, model)
 
 
 def from_run(log: Log, model_path: Path) -> np.ndarray | None:

@@ -46,6 +46,13 @@ class Log:
     def steps(self) -> int:
         return len(self.t)
 
+    @property
+    def action_model_kind(self) -> str:
+        """The kind of action model this log is calibrated with: ``table`` for discrete actions, ``command_poly``
+        for continuous commands (the ``kind`` of :mod:`casm_graph.models.velocity_table` and
+        :mod:`casm_graph.models.command_model`)."""
+        return "table" if self.action is not None else "command_poly"
+
     # The derived arrays below are computed once per Log (a Log is never changed after it is built:
     # ``window``/``prune`` make new ones) and handed out read-only, so a caller that wants to change
     # one must copy it first; per-segment loops index them freely (issue 25: ``obs_step`` recomputed

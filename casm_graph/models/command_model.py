@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from casm_graph.io.log import LogError
+from casm_graph.models.velocity_table import VelocityTable
 
 KIND = "command_poly"
 
@@ -55,6 +56,7 @@ class CommandModel:
     """f_v(v) = sum a_i (v / scale_v)**i, f_w(w) = sum b_i (w / scale_w)**i, lateral velocity 0."""
 
     kind = KIND
+    zero_start = False          # a zero map never moves under EKFS-EM: it starts from the log-only initialiser
 
     scale: tuple[float, float]            # command scales (v, w)
     v_coef: np.ndarray                    # (Dv+1,)
@@ -129,6 +131,17 @@ class CommandModel:
             raise LogError(f"commands.csv: the command map needs columns 'v,w' (this log has "
                            f"{','.join(log.control_names)})")
         return self
+
+    def step_table(self, log) -> tuple[np.ndarray, VelocityTable]:
+        """(T,) row of each step and the table they index: every step its own row, the map's velocity at that
+        step (graph-em's E-step holds them fixed)."""
+        return np.arange(log.steps), VelocityTable(np.arange(log.steps), self.step_velocities(log))
+
+    def std_json(self) -> dict:
+        """The coefficients' posterior std for a JSON file (the uncertainty run's Laplace section)."""
+        def lst(a):
+            return None if a is None else np.asarray(a, float).tolist()
+        return {"command_std": {"v": lst(self.v_std), "w": lst(self.w_std)}}
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the coefficients' posterior std, None before marginals."""

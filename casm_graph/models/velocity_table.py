@@ -24,6 +24,7 @@ class VelocityTable:
     velocity_std: np.ndarray | None = None
 
     kind = KIND
+    zero_start = True           # EKFS-EM may start from the paper's zero table: the filter's sightings move it
 
     @property
     def params(self) -> np.ndarray:
@@ -61,6 +62,16 @@ class VelocityTable:
         if missing:
             raise LogError(f"{source} has no velocity for action(s) {missing[:10]} that the log runs")
         return VelocityTable(log.action_ids, self.velocity_of(log.action_ids))
+
+    def step_table(self, log) -> tuple[np.ndarray, "VelocityTable"]:
+        """(T,) row of each step and the table they index: the table itself (graph-em's E-step sees every log as
+        one)."""
+        return np.searchsorted(self.action_ids, log.action), self
+
+    def std_json(self) -> dict:
+        """The parameters' posterior std for a JSON file (the uncertainty run's Laplace section)."""
+        std = self.velocity_std if self.velocity_std is not None else np.full_like(self.velocities, np.nan)
+        return {"velocity_std": {str(int(a)): s.tolist() for a, s in zip(self.action_ids, std)}}
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the parameters' posterior std in units, None before marginals."""

@@ -18,7 +18,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from casm_graph.analysis import posterior as P
-from casm_graph.analysis.marginal_likelihood import NoiseLikelihood, continuous_likelihood, likelihood
+from casm_graph.analysis.marginal_likelihood import NoiseLikelihood, noise_likelihood
 from casm_graph.fit import trajectory
 from casm_graph.fit.calibration import Calibration, read_truth_model
 from casm_graph.io.identifiability import check_identifiable
@@ -91,11 +91,7 @@ class Uncertainty:
     def _laplace_json(self) -> dict:
         """The Laplace std of the table or command map, and of the sensor curve where the log measures readings."""
         m = self.model
-        out = {"noise_draws": self.options.draws}
-        if m.command is None:
-            out["velocity_std"] = {str(int(a)): s.tolist() for a, s in zip(m.action_ids, m.velocity_std)}
-        else:
-            out["command_std"] = {"v": m.command.v_std.tolist(), "w": m.command.w_std.tolist()}
+        out = {"noise_draws": self.options.draws, **m.action.std_json()}
         if m.has("reading"):
             out.update(reading_poly_std=m.reading_poly_std.tolist(), reading_band=m.reading_band())
         return out
@@ -174,7 +170,7 @@ def compute(log: Log, model: Model, poses: np.ndarray, priors: tuple[str, ...] =
         progress.stage("MAP", None)
     # small dense blocks only: BLAS threads would spin and triple the cost of every evaluation
     with threadpool_limits(1):
-        ml = likelihood(log, model, poses) if model.command is None else continuous_likelihood(log, model, poses)
+        ml = noise_likelihood(log, model, poses)
         pri = P.priors_for(ml, overrides)
         o = options or P.SamplerOptions()
         ch = P.run(ml, pri, o, seed=seed, progress=progress, pool=pool)

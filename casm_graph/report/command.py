@@ -8,7 +8,7 @@ import matplotlib
 import numpy as np
 
 from casm_graph.fit import continuous
-from casm_graph.fit.methods.base import Fit
+from casm_graph.fit.result import Fit
 from casm_graph.io.log import Log
 from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
 from casm_graph.report.pages import (STYLE, cost_figure, effect_panels, fit_quality, png, sensor_figure, subplots,

@@ -13,7 +13,7 @@ from matplotlib.patches import Ellipse
 from casm_graph.analysis.correlation import strongest
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.fit import residuals
-from casm_graph.fit.methods.base import Fit
+from casm_graph.fit.result import Fit
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log
 from casm_graph.models.effects.surface_friction import SurfaceFriction

@@ -27,9 +27,9 @@ import time
 
 import numpy as np
 
-from casm_graph.fit import continuous, ekfs
-from casm_graph.fit.initialise import initialise
+from casm_graph.fit import ekfs
 from casm_graph.fit.methods.base import Fit, Progress, register
+from casm_graph.fit.methods.kinds import kind
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.model import Model
 
@@ -49,12 +49,12 @@ def _observations(log: Log):
 
 
 def start_of(log: Log, start: Model):
-    """The log-only start (poses and a model): the table's initialiser, or the continuous-command window start."""
-    return initialise(log, start) if log.controls is None else continuous.initialise(log, start)
+    """The log-only start (poses and a model) of ``start``'s kind of action model."""
+    return kind(start.action.kind).initialise(log, start)
 
 
 def velocity_errors(model: Model, truth: dict | None) -> np.ndarray | None:
-    if truth is None or model.command is not None:
+    if truth is None or "velocities" not in truth.get("action_model", {}):     # a table's truth only
         return None
     tv = np.array([truth["action_model"]["velocities"][str(int(a))] for a in model.action_ids])
     return np.sqrt(np.mean((model.velocities - tv) ** 2, axis=0))
@@ -79,7 +79,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     progress = progress or Progress()
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
-    from_initialiser = from_initialiser or log.controls is not None   # a zero command map never moves
+    from_initialiser = from_initialiser or not start.action.zero_start
     order, ptr, lm, z_r, z_b = _observations(log)
     dt = log.dt
     sig = np.asarray(start.motion_noise, float)

@@ -26,7 +26,7 @@ from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.residuals import observation
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
-from casm_graph.fit.solve import chain_marginals, least_squares
+from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.fit.turns import realias
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import estimate_noise
@@ -42,8 +42,6 @@ LOOSE_POSITION = 0.05       # one channel: a median posterior position std beyon
 POSITION_WARNING = ("with one sensor channel this log places the robot only to about {:.2g} m (median posterior "
                     "position std, {:.0%} of the landmarks' extent): the model rests on little; both channels, more "
                     "precise sightings or a longer log pin it down")
-RIDGE_WARNING = ("the fitted graph is nearly singular (a poor fit or a log that cannot pin the model down): "
-                 "standard deviations computed with a ridge of {:g} x the largest information; treat them as lower bounds")
 
 
 @dataclass(frozen=True)
@@ -98,14 +96,6 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress,
 
     st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick)
     return problem, st, problem.with_state(model, st), h
-
-
-def world_std(poses: np.ndarray, body_std: np.ndarray, body_cov_xy: np.ndarray) -> np.ndarray:
-    """Map-frame (sx, sy, stheta) from Pose2 marginals, which live in the body frame (GTSAM's tangent)."""
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-    cov = R @ body_cov_xy @ np.transpose(R, (0, 2, 1))
-    return np.column_stack([np.sqrt(cov[:, 0, 0]), np.sqrt(cov[:, 1, 1]), body_std[:, 2]])
 
 
 @dataclass

@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from casm_graph.fit import continuous
 from casm_graph.fit.methods.base import Fit, Progress, register
-from casm_graph.fit.methods.graph import GraphOptions, coarse_start
+from casm_graph.fit.methods.graph import GraphOptions
+from casm_graph.fit.methods.kinds import kind
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain
@@ -26,7 +26,6 @@ from casm_graph.graph import table as G
 from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
-from casm_graph.models.velocity_table import VelocityTable
 
 MAX_ITERATIONS = 40
 TOL = 1e-6           # stop when the marginal likelihood improves by less than this fraction
@@ -144,11 +143,10 @@ def _unvec(x: np.ndarray, like: Model) -> Model:
 def step_graph(log: Log, model: Model) -> tuple[G.Layout, Model]:
     """A pose at every step and the model as the graph of a table sees it: a table's own layout, or, for a command
     map, every step its own action whose velocity is the map's at that step (the E-step holds them fixed)."""
-    if model.command is None:
-        return G.layout(log, model, 1), model
+    rows, table = model.action.step_table(log)
     T = log.steps
-    lay = G.Layout(np.arange(T + 1), np.arange(T), np.ones(T, int), log.dt.copy(), log.obs_step.copy(), T)
-    return lay, model.with_action(VelocityTable(np.arange(T), model.step_velocities(log)))
+    lay = G.Layout(np.arange(T + 1), rows, np.ones(T, int), log.dt.copy(), log.obs_step.copy(), len(table.action_ids))
+    return lay, model.with_action(table)
 
 
 def em_map(log: Log, model: Model, poses: np.ndarray):
@@ -174,8 +172,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     that start's)."""
     progress = progress or Progress()
     t0 = time.perf_counter()
-    co = (coarse_start(log, start, seed, progress, options=options) if log.controls is None
-          else continuous.coarse_start(log, start, seed, progress))
+    co = kind(start.action.kind).coarse(log, start, seed, progress, options=options)
     model, poses = co.model, co.poses
     pruned = outlying(log, model, poses)          # gross outliers out, as graph prunes them: the M-step is Gaussian
     log = prune(log, pruned)

@@ -71,6 +71,11 @@ class ActionPart:
         self.log, self.lay = log, lay
         self.motion_effects, self.ls_index = list(motion_effects), np.asarray(ls_index, int)
 
+    @classmethod
+    def default_layout(cls, log: Log, model: Model):
+        """The layout a graph of ``model`` on ``log`` takes when the caller gives none."""
+        raise NotImplementedError
+
     def params(self, model: Model) -> np.ndarray:
         """The model's action parameters (array of ``shape``)."""
         return np.array(model.action.params, float).reshape(self.shape)

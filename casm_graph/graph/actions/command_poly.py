@@ -23,6 +23,7 @@ from casm_graph.models.command_model import for_commands
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import Model
 
+DEFAULT_KNOT_DT = 0.25       # s between knots when the caller gives no layout (the fine graph's)
 COMMAND_CHANGE = 0.1         # a command jump of this share of its range starts an "action" (the residuals' covariate)
 PARAM_PRIOR_REL = 2.0        # command-map prior: centred on the nominal map (velocity = command), std twice the
                              # command scale
@@ -112,6 +113,11 @@ class CommandPoly(ActionPart):
             self.Bv_prev, self.Bw_prev = bv[prev][idx], bw[prev][idx]
         both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
         self.Bv_obs, self.Bw_obs = both[:, :self.nv], both[:, self.nv:]
+
+    @classmethod
+    def default_layout(cls, log, model: Model) -> Layout:
+        """Knots every ``DEFAULT_KNOT_DT`` seconds and at every sighting's step."""
+        return layout(log, DEFAULT_KNOT_DT)
 
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         cm = model.command

@@ -44,6 +44,11 @@ class TableActions(ActionPart):
             for c in range(3):
                 self.obs_dv[:, c, c::3] = share
 
+    @classmethod
+    def default_layout(cls, log, model: Model) -> G.Layout:
+        """A pose at every step."""
+        return G.layout(log, model, stride=1)
+
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(self.n), np.full(self.n, G.VELOCITY_PRIOR_SIGMA)
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from casm_graph.io.log import Log
+from casm_graph.io.log import Log, LogError
 from casm_graph.models.effects.base import Effect, register
 
 VAR_FLOOR = 1e-8
@@ -63,6 +63,25 @@ class Regions:
     def around_landmarks(cls, log: Log, grid=GRID, pad: float = PAD) -> "Regions":
         lo, hi = log.landmark_xy.min(axis=0) - pad, log.landmark_xy.max(axis=0) + pad
         return cls((float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])), tuple(int(g) for g in grid))
+
+    @classmethod
+    def parse(cls, text: str | None, log: Log) -> "Regions | None":
+        """The grid of ``--regions``: "NX,NY" (around the landmarks) or "NX,NY,X0,Y0,X1,Y1"; None for None (the
+        default around the landmarks); LogError for anything else."""
+        if text is None:
+            return None
+        try:
+            v = [float(x) for x in text.split(",")]
+        except ValueError:
+            v = []
+        if len(v) not in (2, 6) or v[0] < 1 or v[1] < 1 or v[0] != int(v[0]) or v[1] != int(v[1]) \
+                or (len(v) == 6 and not (v[4] > v[2] and v[5] > v[3])):
+            raise LogError(f"--regions {text!r}: give NX,NY or NX,NY,X0,Y0,X1,Y1 (whole counts >= 1, X1 > X0, "
+                           f"Y1 > Y0)")
+        grid = (int(v[0]), int(v[1]))
+        if len(v) == 2:
+            return cls.around_landmarks(log, grid)
+        return cls(tuple(v[2:]), grid)
 
     @property
     def count(self) -> int:

@@ -1,0 +1,38 @@
+"""Calibrating a command map (continuous ``v,w`` commands): a zero map, the window start at the nominal map, the
+coarse knots of :mod:`casm_graph.fit.continuous`; effects (profiled, regional noise, hooked) by the graph method."""
+from __future__ import annotations
+
+from casm_graph.fit import continuous
+from casm_graph.fit.methods.base import METHODS
+from casm_graph.fit.methods.kinds.base import ActionKind
+from casm_graph.io.log import LogError
+from casm_graph.models.command_model import KIND
+from casm_graph.models.effects.regional_motion_noise import Regions
+
+
+class CommandKind(ActionKind):
+    name = KIND
+
+    def start_model(self, log, sensor_degree=3, basis="distance"):
+        return continuous.start_model(log, sensor_degree, basis=basis)
+
+    def initialise(self, log, start):
+        return continuous.initialise(log, start)
+
+    def coarse(self, log, start, seed=0, progress=None, options=None):
+        return continuous.coarse_start(log, start, seed, progress)
+
+    def check(self, log, options, classes):
+        continuous.check_effects(options.effects, log)
+        if classes and options.method != "graph":
+            raise LogError(f"--method {options.method}: effects on continuous commands are fitted by the graph method")
+        Regions.parse(options.regions, log)
+
+    def calibrate(self, log, start, options, classes, progress=None):
+        if options.method != "graph":
+            return METHODS[options.method](log, start, seed=options.seed, progress=progress)
+        if classes:
+            return continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
+                                               progress=progress, regions=Regions.parse(options.regions, log),
+                                               options=options.command_graph)
+        return continuous.fit(log, start, seed=options.seed, progress=progress, options=options.command_graph)
