@@ -6,12 +6,17 @@ from gtsam.symbol_shorthand import X
 
 from casm_graph.fit import ekfs
 from casm_graph.fit.methods.ekfs_em import _observations
-from casm_graph.fit.methods.graph_em import expected_displacement, gaussian_moments
+from casm_graph.fit.methods.graph_em import expected_displacement, gaussian_moments, step_graph
+from casm_graph.fit.methods.kinds import KINDS, kind
 from casm_graph.graph import chain
 from casm_graph.graph import table as G
+from casm_graph.graph.actions import ACTIONS, default_layout
 from casm_graph.graph.problem import Problem
+from casm_graph.models.command_model import for_commands
 from casm_graph.models.model import paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
+from casm_graph.sim.floor import FloorConfig
+from casm_graph.sim.floor import simulate as simulate_floor
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +114,25 @@ def test_both_action_models_answer_the_same_questions(true_case):
         assert refit.action.params == pytest.approx(p, abs=1e-9)
         assert refit.to_json()["action_model"]["kind"] == act.kind
     assert m.action.std_summary() is None and m.action.describe().startswith("action table")
+
+
+def test_each_kind_of_action_model_has_its_calibration_part(true_case):
+    """Every action part of the graph has a calibration part of its kind, which starts a log of that kind with a
+    model of that kind; graph-em's step graph runs each step at the model's own velocity, whichever the kind."""
+    log, m = true_case
+    floor_log, _ = simulate_floor(FloorConfig(minutes=2, seed=1))
+    floor = m.with_action(for_commands(floor_log.controls, 2, 1, gain=1.0).with_params(
+        np.array([0.01, 0.9, -0.05, 0.02, 1.1])))
+    assert set(KINDS) == set(ACTIONS)
+    for lg, model in ((log, m), (floor_log, floor)):
+        part = kind(lg.action_model_kind)
+        start = part.start_model(lg, 3)
+        assert start.action.kind == part.name == lg.action_model_kind == model.action.kind
+        assert isinstance(default_layout(lg, start), ACTIONS[part.name].layout_type)
+        lay, seen = step_graph(lg, model)
+        assert np.array_equal(lay.knots, np.arange(lg.steps + 1))
+        assert np.allclose(seen.velocities[lay.seg_action], model.step_velocities(lg))
+    assert set(m.action.std_json()) == {"velocity_std"} and set(floor.action.std_json()) == {"command_std"}
 
 
 def test_a_model_is_made_ready_for_a_log_or_says_why(true_case):
