@@ -28,6 +28,11 @@ def position_rms(cal, log) -> float:
     return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
+def heading_rms(cal, log) -> float:
+    d = np.angle(np.exp(1j * (cal.trajectory["theta"] - log.truth[:, 3])))
+    return float(np.sqrt(np.mean(d ** 2)))
+
+
 def one(effect: str, seed: int, minutes: float, kind: str = "table") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         W.generate(tmp, kind=kind, minutes=minutes, seed=seed, effect=None if effect == "none" else effect,
@@ -38,12 +43,13 @@ def one(effect: str, seed: int, minutes: float, kind: str = "table") -> dict:
     diag = cg.diagnose(log, cal)
     row = {"effect": effect, "seed": seed, "strength": truth["strength"], "geometry": truth["geometry"],
            "verdict": diag.verdict, "proposal": diag.proposal.get("equation", []),
-           "position_rms": [position_rms(cal, log)]}
+           "position_rms": [position_rms(cal, log)], "heading_rms": [heading_rms(cal, log)]}
     if diag.proposal:
         cal2 = cg.calibrate(log, effects=[diag.proposal_effect()])
         after = cg.diagnose(log, cal2, before=diag)
         row.update(fitted=equation(cal2.model.effects["proposal"]), verdict_after=after.verdict)
         row["position_rms"].append(position_rms(cal2, log))
+        row["heading_rms"].append(heading_rms(cal2, log))
     return row
 
 
@@ -60,6 +66,7 @@ def main():
             row = one(effect, seed, a.minutes, a.kind)
             print(f"{effect} seed {seed} (s={row['strength']}): {row['verdict']}; proposal {row['proposal']}; "
                   f"fitted {row.get('fitted')}; position RMS {[round(x, 4) for x in row['position_rms']]}; "
+                  f"heading RMS {[round(x, 4) for x in row['heading_rms']]}; "
                   f"after {row.get('verdict_after')}", flush=True)
             if a.json:
                 with open(a.json, "a") as f:

@@ -223,7 +223,9 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     cands.sort(key=lambda c: c.delta_bic)
     leaders = [c for c in cands if id(c) in settles and c.delta_bic <= o.bic_support
                and c.delta_bic <= o.lookalike_gain * cands[0].delta_bic]
+    rounds = o.settle_rounds
     if len(leaders) > 1 and o.decide_rounds > o.settle_rounds:
+        rounds = o.decide_rounds
         if progress is not None:
             progress.stage("settling the leaders", len(leaders), unit="effects")
         ll0, _, pb0, st0 = settle_base(o.decide_rounds)
@@ -242,7 +244,14 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
     explains = {n: kinds[n].explains for n in names}
     v, words = verdict(cands, struct, explains, o, last=tuple(e.name for e in hooked if e.mixture))
-    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support)
+
+    def challenge(cls):               # the proposal, settled as a hooked candidate against the same base
+        e = cls(log)
+        ll = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=rounds,
+                                       iterations=search.iterations)[0]
+        return float(ll - ll0), float(-2 * (ll - ll0) + e.free_parameters() * np.log(n))
+    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, challenge,
+                               o.proposal_challenge, o.lookalike_bic)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,
                        options=o, base=base_prediction)
     words += family_words(cands, v) + lookalike_words(alike)

@@ -100,6 +100,11 @@ class DiagnoseOptions:
     #                                    (-24,878 against -24,663), the lag's delay held at its two-round profile
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
+    proposal_challenge: float = 2.0    # continuous logs: a catalog verdict yields to the sparse regression's proposal,
+    #                                    fitted as a candidate, when the proposal gains at least this many times its
+    #                                    log-likelihood and lowers BIC by more than the look-alike margin below it
+    #                                    (a speed oscillating in time was named battery_fade, turn rate growing with
+    #                                    speed battery_fade or surface_friction; 0: never)
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
     #                                    this lead) more than its own is the controller correcting the noise, not
     #                                    structure of the model (0: no such test)
@@ -799,7 +804,9 @@ def chosen_candidates(candidates, extra_effects=()) -> set | None:
 
 
 def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions, cands=(),
-             explains: dict | None = None, support: float = DEFAULTS.bic_support) -> tuple[str, list[str], dict]:
+             explains: dict | None = None, support: float = DEFAULTS.bic_support,
+             challenge: Callable | None = None, ratio: float = 0.0,
+             margin: float = DEFAULTS.lookalike_bic) -> tuple[str, list[str], dict]:
     """The verdict, its words and the sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`,
     searching as ``options`` say). An ``unexplained:<covariate>`` verdict gets the proposal; so does ``none``
     when the regression finds terms that pass its own test, and the verdict becomes ``unexplained:`` the strongest
@@ -815,7 +822,7 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     if verdict_name.startswith("unexplained:"):
         return verdict_name, words, propose(chs, options)
     if verdict_name != "none":
-        return verdict_name, words, {}
+        return challenged(verdict_name, words, chs, options, cands, challenge, ratio, margin)
     found = propose(chs, replace(options, periods=0))
     if not found:
         return verdict_name, words, {}
@@ -834,6 +841,34 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
         "No catalog effect is supported and no single covariate's bins show material structure, but a sparse "
         f"regression of the motion residuals finds terms that pass its test (|t| >= {options.min_t:g}): something "
         f"the model and the catalog lack depends on {cov}."], found
+
+
+def challenged(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions, cands, challenge,
+               ratio: float, margin: float) -> tuple[str, list[str], dict]:
+    """A catalog verdict against the sparse regression's proposal: ``challenge`` fits the proposal's effect class
+    as a candidate on the verdict's footing and returns its (log-likelihood gain, delta BIC). When the proposal
+    gains at least ``ratio`` times the verdict's gain and its delta BIC is more than ``margin`` lower, the catalog
+    effect explains only part of the structure and the verdict becomes ``unexplained:`` the proposal's strongest
+    covariate, with the proposal (and its fitted gain) to add. A catalog effect of the right form gains about what
+    the proposal's terms gain (a fade's exponential in time, a linear term in time) and stays."""
+    named = next((c for c in cands if c.effect == verdict_name), None)
+    if challenge is None or ratio <= 0 or named is None:
+        return verdict_name, words, {}
+    found = propose(chs, options)
+    if not found:
+        return verdict_name, words, {}
+    gain, dbic = challenge(proposal_effect(found["terms"]))
+    if not (gain >= ratio * max(named.delta_log_likelihood, 0.0) and dbic < named.delta_bic - margin):
+        return verdict_name, words, {}
+    found = {**found, "fitted": {"delta_log_likelihood": float(gain), "delta_bic": float(dbic),
+                                 "instead_of": {"effect": named.effect, "delta_bic": named.delta_bic,
+                                                "delta_log_likelihood": named.delta_log_likelihood}}}
+    cov = term_covariates(found)[0][1]
+    return f"unexplained:{cov}", [
+        f"The best catalog effect, {named.effect} (delta BIC {named.delta_bic:.1f}), explains only part of the "
+        f"residual structure: the sparse regression's proposal, fitted as an effect, gains {gain:.1f} nats against "
+        f"its {named.delta_log_likelihood:.1f} (delta BIC {dbic:.1f}). Something the catalog lacks depends on "
+        f"{cov}."], found
 
 
 def open_loop_error(problem, st, poses: np.ndarray) -> dict:

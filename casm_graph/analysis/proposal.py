@@ -96,6 +96,20 @@ def ols_hac(y: np.ndarray, X: np.ndarray, lags: int) -> tuple[np.ndarray, np.nda
     return coef, coef / np.sqrt(np.maximum(np.diag(cov), 1e-300)), e
 
 
+def distinct(X: np.ndarray, use: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """``use`` without the columns that repeat an earlier used one (correlation 1 within ``tol``): on a robot that
+    never reverses, speed is v_forward, and least squares would split one term's coefficient between the two."""
+    use = use.copy()
+    cols = np.flatnonzero(use)
+    if len(cols) < 2:
+        return use
+    R = np.corrcoef(X[:, cols], rowvar=False)
+    for j in range(1, len(cols)):
+        if np.any(np.abs(R[j, :j][use[cols[:j]]]) > 1.0 - tol):
+            use[cols[j]] = False
+    return use
+
+
 def fit_axis(chs: dict, axis: str, options: ProposalOptions) -> dict | None:
     """The sparse regression on one motion axis: kept terms, coefficients, t-values, R^2; None if nothing."""
     ch = chs.get(axis)
@@ -116,7 +130,7 @@ def fit_axis(chs: dict, axis: str, options: ProposalOptions) -> dict | None:
     if len(ym) < 3 * len(names):
         return None
     mu, sd = Xm.mean(axis=0), Xm.std(axis=0)
-    use = sd > 1e-12 * (1 + np.abs(mu))
+    use = distinct(Xm, sd > 1e-12 * (1 + np.abs(mu)))
     yc = ym - ym.mean()
     with warnings.catch_warnings():      # collinear terms (sin and cos of a short log's heading): LARS drops one
         warnings.simplefilter("ignore", ConvergenceWarning)
