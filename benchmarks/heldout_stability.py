@@ -7,7 +7,7 @@ each fold iteration count. A score worth trusting barely moves between 4 and 16 
     python benchmarks/heldout_stability.py lens_distortion 0.3 --seed 0 --iterations 4 16
     python benchmarks/heldout_stability.py false_detections 0.05 --seed 1 --iterations 4 --folds
 
-``--folds`` also prints each fold's log-likelihoods: the fit with the block from both starts, and without it.
+``--folds`` also prints each fold's log-likelihoods: the fit with the block and without it.
 """
 from __future__ import annotations
 
