@@ -100,11 +100,11 @@ class DiagnoseOptions:
     #                                    (-24,878 against -24,663), the lag's delay held at its two-round profile
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
-    proposal_challenge: float = 2.0    # continuous logs: a catalog verdict yields to the sparse regression's proposal,
-    #                                    fitted as a candidate, when the proposal gains at least this many times its
+    proposal_challenge: float = 2.0    # a catalog verdict yields to the sparse regression's proposal, fitted as a
+    #                                    candidate, when the proposal gains at least this many times its
     #                                    log-likelihood and lowers BIC by more than the look-alike margin below it
-    #                                    (a speed oscillating in time was named battery_fade, turn rate growing with
-    #                                    speed battery_fade or surface_friction; 0: never)
+    #                                    (continuous world: a speed oscillating in time was named battery_fade, turn
+    #                                    rate growing with speed battery_fade or surface_friction; 0: never)
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
     #                                    this lead) more than its own is the controller correcting the noise, not
     #                                    structure of the model (0: no such test)
@@ -744,7 +744,12 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), worker
                    progress, client, o)
     cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
     v, words = verdict(cands, struct, explains, o)
-    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support)
+
+    def challenge(cls):               # the proposal, fitted as a candidate against the same base
+        c = fit_candidate(log, refit, base, cls, o)[0]
+        return c.delta_log_likelihood, c.delta_bic
+    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, challenge,
+                               o.proposal_challenge, o.lookalike_bic)
     alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o,
                        base=predicted_sightings(base.problem, base.state))
     return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
