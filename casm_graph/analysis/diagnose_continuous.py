@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
@@ -176,6 +177,10 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
     def settle_base(rounds):
         return CT.settled_log_likelihood(log, coarse, model, cuse, start, own, rounds=rounds,
                                          iterations=search.iterations)
+
+    def settle_hooked(rounds, e):     # a hooked effect's candidate (the proposal's too), settled as the base is
+        return CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=rounds,
+                                         iterations=search.iterations)
     if todo or hooked:        # every candidate scored against one base, settled as they are
         ll0, _, pb0, st0 = settle_base(o.settle_rounds)
         base_prediction = predicted_sightings(pb0, st0)
@@ -206,17 +211,14 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
             if progress is not None:
                 progress.step(1)
             continue
-        def settle_hooked(rounds, e=e):
-            return CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=rounds,
-                                             iterations=search.iterations)
-        ll, m, pb, s = settle_hooked(o.settle_rounds)
+        ll, m, pb, s = settle_hooked(o.settle_rounds, e)
         gain = float(ll - ll0)
         cands.append(Candidate(effect=e.name, channel=e.channel, delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
                                parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
                                heldout_skipped=NO_FOLDS,
                                prediction=predicted_sightings(pb, s)))
-        settles[id(cands[-1])] = (settle_hooked, e.free_parameters())
+        settles[id(cands[-1])] = (partial(settle_hooked, e=e), e.free_parameters())
         if progress is not None:
             progress.step(1)
     cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
@@ -247,9 +249,8 @@ def diagnose(log: Log, model: Model, poses: np.ndarray, progress=None, extra_eff
 
     def challenge(cls):               # the proposal, settled as a hooked candidate against the same base
         e = cls(log)
-        ll = CT.settled_log_likelihood(log, coarse, model, cuse, start, [*own, e], rounds=rounds,
-                                       iterations=search.iterations)[0]
-        return float(ll - ll0), float(-2 * (ll - ll0) + e.free_parameters() * np.log(n))
+        gain = float(settle_hooked(rounds, e)[0] - ll0)
+        return gain, -2 * gain + e.free_parameters() * np.log(n)
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, challenge,
                                o.proposal_challenge, o.lookalike_bic)
     alike = lookalikes(cands, v, {n: kinds[n].distinguished_by for n in names}, relative=o.lookalike_relative,

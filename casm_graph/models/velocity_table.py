@@ -34,9 +34,13 @@ class VelocityTable:
         kw = {} if std is None else {"velocity_std": np.asarray(std, float).reshape(-1, 3)}
         return replace(self, velocities=np.asarray(p, float).reshape(-1, 3), **kw)
 
+    def rows_of(self, action: np.ndarray) -> np.ndarray:
+        """(n,) the table's row of each action id in ``action``."""
+        return np.searchsorted(self.action_ids, action)
+
     def velocity_of(self, action: np.ndarray) -> np.ndarray:
-        """(n, 3) the row of each action id in ``action``."""
-        return self.velocities[np.searchsorted(self.action_ids, action)]
+        """(n, 3) the velocity of each action id in ``action``."""
+        return self.velocities[self.rows_of(action)]
 
     def step_velocities(self, log) -> np.ndarray:
         """(T, 3) the row of each step's action."""
@@ -45,7 +49,7 @@ class VelocityTable:
     def fitted_to_steps(self, log, moved: np.ndarray) -> "VelocityTable":
         """Each action's mean velocity over the steps that ran it (displacements ``moved``, (T, 3)); actions never
         run keep theirs."""
-        act = np.searchsorted(self.action_ids, log.action)
+        act = self.rows_of(log.action)
         total, time = np.zeros_like(self.velocities), np.zeros(len(self.action_ids))
         np.add.at(total, act, moved)
         np.add.at(time, act, log.dt)
@@ -66,7 +70,7 @@ class VelocityTable:
     def step_table(self, log) -> tuple[np.ndarray, "VelocityTable"]:
         """(T,) row of each step and the table they index: the table itself (graph-em's E-step sees every log as
         one)."""
-        return np.searchsorted(self.action_ids, log.action), self
+        return self.rows_of(log.action), self
 
     def std_json(self) -> dict:
         """The parameters' posterior std for a JSON file (the uncertainty run's Laplace section)."""

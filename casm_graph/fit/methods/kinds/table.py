@@ -10,8 +10,8 @@ from casm_graph.fit import effect_fit
 from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import METHODS, Fit, Progress
 from casm_graph.fit.methods.graph import coarse_start
-from casm_graph.fit.solve import world_std
 from casm_graph.fit.methods.kinds.base import ActionKind
+from casm_graph.fit.solve import world_std
 from casm_graph.graph import augmented
 from casm_graph.io.log import Log, LogError
 from casm_graph.models.model import paper_start
