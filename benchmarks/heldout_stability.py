@@ -17,6 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from casm_graph.analysis import diagnosis
+from casm_graph.analysis.candidates import table
 from casm_graph.fit import effect_fit
 from casm_graph.io.log import load
 from casm_graph.models.effects import REGISTRY
@@ -41,12 +42,12 @@ def main():
     kw = {"rounds": diagnosis.DEFAULTS.candidate_rounds, "iterations": diagnosis.DEFAULTS.candidate_iterations}
     refit = effect_fit.fit(log, fit.model, fit.poses, [], **kw)
     base = effect_fit.fit(log, refit.model, refit.poses, [], **kw)
-    cand, model, poses = diagnosis.fit_candidate(log, refit, base, a.effect)
+    cand, model, poses = table.fit_candidate(log, refit, base, a.effect)
     for n in a.iterations:
         opts = replace(diagnosis.DEFAULTS, fold_iterations=n)
         db, de = [], []
-        hb = diagnosis.heldout_log_likelihood(log, base.model, base.poses, [], detail=db, options=opts)
-        he = diagnosis.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de, options=opts)
+        hb = table.heldout_log_likelihood(log, base.model, base.poses, [], detail=db, options=opts)
+        he = table.heldout_log_likelihood(log, model, poses, [REGISTRY[a.effect]], detail=de, options=opts)
         if a.folds:
             for label, rows in (("base", db), (a.effect, de)):
                 for i, r in enumerate(rows):

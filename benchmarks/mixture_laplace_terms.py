@@ -15,6 +15,7 @@ import tempfile
 from pathlib import Path
 
 from casm_graph.analysis import diagnosis
+from casm_graph.analysis.candidates import table
 from casm_graph.fit import effect_fit
 from casm_graph.pipeline import calibrate as calibrate_run
 from casm_graph.sim.aibo import SimConfig, simulate, write
@@ -29,10 +30,10 @@ def main():
     log, truth = simulate(SimConfig(minutes=6, seed=a.seed, effects={"false_detections": a.fraction}))
     write(log, truth, w / "log")
     log, fit = calibrate_run.run(w / "log", w / "run", seed=a.seed)
-    kw = {"rounds": diagnosis.CANDIDATE_ROUNDS, "iterations": diagnosis.CANDIDATE_ITERATIONS}
+    kw = {"rounds": diagnosis.DEFAULTS.candidate_rounds, "iterations": diagnosis.DEFAULTS.candidate_iterations}
     refit = effect_fit.fit(log, fit.model, fit.poses, [], **kw)
     base = effect_fit.fit(log, refit.model, refit.poses, [], **kw)
-    _, m, p = diagnosis.fit_candidate(log, refit, base, "false_detections")
+    _, m, p = table.fit_candidate(log, refit, base, "false_detections")
     opt = effect_fit.fit(log, m, p, ["false_detections"], **kw)
     for its in (0, 1, 4):
         f = effect_fit.fit(log, opt.model, opt.poses, ["false_detections"], theta=opt.theta, rounds=1,

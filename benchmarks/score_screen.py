@@ -26,10 +26,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                                   # noqa: E402
 from casm_graph.analysis import diagnosis as D                            # noqa: E402
+from casm_graph.analysis.candidates import table as TB                    # noqa: E402
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain  # noqa: E402
 from casm_graph.fit import effect_fit                                     # noqa: E402
 from casm_graph.graph.augmented import instantiate                        # noqa: E402
-from casm_graph.models.effects import REGISTRY, of_model                  # noqa: E402
+from casm_graph.models.effects import REGISTRY, of_model, spec            # noqa: E402
 from casm_graph.sim.aibo import SimConfig, simulate, write                # noqa: E402
 from tests.worlds.independent_world import generate                       # noqa: E402
 
@@ -72,9 +73,9 @@ def world(args) -> dict:
                 t0 = time.perf_counter()
                 gain = predicted_gain(log, base, eff, floor)
                 t_screen = time.perf_counter() - t0
-                c, _, _ = D.fit_candidate(log, refit, base, m, o)
-                rows.append({"member": D.spec(m), "k": eff.free_parameters(),
-                             "penalty": float(eff.free_parameters() * np.log(D._n_data(log))),
+                c, _, _ = TB.fit_candidate(log, refit, base, m, o)
+                rows.append({"member": spec(m), "k": eff.free_parameters(),
+                             "penalty": float(eff.free_parameters() * np.log(TB.n_data(log))),
                              "predicted_gain": gain, "fitted_gain": c.delta_log_likelihood,
                              "delta_bic": c.delta_bic, "seconds_screen": t_screen, "seconds_fit": c.seconds})
     return {"source": source, "effect": effect, "seed": seed, "minutes": minutes, "members": rows}

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
+from casm_graph.analysis.candidates import BENCHES
 from casm_graph.fit import ekfs
 from casm_graph.fit.methods.ekfs_em import _observations
 from casm_graph.fit.methods.graph_em import expected_displacement, gaussian_moments, step_graph
@@ -117,13 +118,14 @@ def test_both_action_models_answer_the_same_questions(true_case):
 
 
 def test_each_kind_of_action_model_has_its_calibration_part(true_case):
-    """Every action part of the graph has a calibration part of its kind, which starts a log of that kind with a
-    model of that kind; graph-em's step graph runs each step at the model's own velocity, whichever the kind."""
+    """Every action part of the graph has a calibration part and a diagnosis's candidate part of its kind; the
+    calibration part starts a log of that kind with a model of that kind; graph-em's step graph runs each step at the
+    model's own velocity, whichever the kind."""
     log, m = true_case
     floor_log, _ = simulate_floor(FloorConfig(minutes=2, seed=1))
     floor = m.with_action(for_commands(floor_log.controls, 2, 1, gain=1.0).with_params(
         np.array([0.01, 0.9, -0.05, 0.02, 1.1])))
-    assert set(KINDS) == set(ACTIONS)
+    assert set(KINDS) == set(ACTIONS) == set(BENCHES)
     for lg, model in ((log, m), (floor_log, floor)):
         part = kind(lg.action_model_kind)
         start = part.start_model(lg, 3)

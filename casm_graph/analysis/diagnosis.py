@@ -12,7 +12,8 @@
    negative log-likelihood on time-blocked folds: the effect's parameters and the noise levels are
    fitted with one third of the observations hidden, and the hidden ones are scored by
    log p(O_all) - log p(O_train) with those held fixed and the table, polynomial and poses fitted
-   in both (:func:`heldout_log_likelihood`). The folds run for the candidates whose
+   in both (:func:`casm_graph.analysis.candidates.table.heldout_log_likelihood`; a command map's candidates
+   are settled on its coarse graph instead, :mod:`casm_graph.analysis.candidates`). The folds run for the candidates whose
    delta BIC is below zero; one that does not even improve the in-sample fit cannot be the verdict,
    and its ``heldout_nll_drop`` is null.
 3. The verdict names the candidate that BIC supports strongly and that either improves the
@@ -22,11 +23,6 @@
 """
 from __future__ import annotations
 
-import multiprocessing
-import os
-import pickle
-import signal
-import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -34,23 +30,17 @@ from typing import Callable
 import numpy as np
 from scipy import stats
 
-from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.analysis.proposal import ProposalOptions, propose
 from casm_graph.analysis.proposal import term_covariates
 from casm_graph.analysis.proposal import words as proposal_words
-from casm_graph.analysis.score_test import predicted_floor, predicted_gain
-from casm_graph.fit import effect_fit
-from casm_graph.fit.residuals import CATEGORICAL, Channel, channels, ljung_box
+from casm_graph.fit.residuals import CATEGORICAL, Channel, ljung_box
 from casm_graph.graph.actions.command_poly import COMMAND_CHANGE
-from casm_graph.graph.augmented import instantiate
 from casm_graph.io.log import Log, LogError, wrap
 from casm_graph.io.output import atomic_dir, json_text
-from casm_graph.models.effects import REGISTRY, get, of_model, spec
-from casm_graph.models.effects.base import held
+from casm_graph.models.effects import REGISTRY
 from casm_graph.models.effects.proposal import proposal_effect
-from casm_graph.models.model import Model
 
 SCHEMA = "casm-graph/diagnosis/1"
 
@@ -317,77 +307,8 @@ def folds(log: Log, k: int = DEFAULTS.folds) -> list[np.ndarray]:
     return [block != f for f in range(k)]
 
 
-def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
-                           detail: list | None = None, options: DiagnoseOptions = DEFAULTS) -> float:
-    """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
-    a block say about it.
-
-    Per fold: the model is fitted on the rest; then, with the effects' parameters and the noise
-    levels held at those values, table, polynomial and poses are fitted once with the block and once
-    without, and the block's term is the difference of the two log-likelihoods. The table and
-    polynomial are the nuisance here: on a six-minute log many actions run only inside one block,
-    and a table learned without it predicts that block so badly (hundreds of nats either way) that
-    the comparison of two models drowned in it. The fit with the block starts from the model's own
-    full-log poses: the training poses drifted over a block without sightings and could stop in another
-    basin (640 nats lower on one of 36 folds of six Aibo effect logs, never more than 0.2 higher:
-    benchmarks/heldout_stability.py --folds); the fit without it is the training problem with effects
-    and noise held, so the training poses are already its optimum.
-    ``detail`` (a list) receives per fold the log-likelihood with the block and without it;
-    ``options``: the folds and the bounds of each fold's least squares.
-    """
-    total = 0.0
-    fixed = [held(_resolve(e)) for e in effects]
-    its, tol = options.fold_iterations, options.fold_tol
-    for mask in folds(log, options.folds):
-        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
-        with_block, without = (
-            effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=its,
-                           obs_mask=m, fit_noise=False, rel_tol=tol).log_likelihood
-            for m, start in ((None, poses), (mask, tr.poses)))
-        if detail is not None:
-            detail.append({"with_block": with_block, "without_block": without})
-        total += with_block - without
-    return total
-
-
-def _n_data(log: Log) -> int:
-    return int(np.sum(np.isfinite(log.obs_reading)) + np.sum(np.isfinite(log.obs_bearing)))
-
-
-def _resolve(extra):
-    """A catalog name (how effects travel to worker processes) back to its class."""
-    return get(extra) if isinstance(extra, str) else extra
-
-
 SCREENED = "not fitted: the score test predicts too small a gain, held-out folds not run"
 DECIDED = "not needed: a supported candidate lower in BIC by more than the look-alike margin decides the verdict"
-
-
-def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
-                  options: DiagnoseOptions = DEFAULTS, floor: float | None = None):
-    """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
-
-    Returns the candidate (held-out score still to come) and the fitted model and poses. With ``floor`` (the
-    base's :func:`~casm_graph.analysis.score_test.predicted_floor`) a candidate whose score-test gain is below
-    ``options.screen_share`` of its BIC penalty is not fitted: it returns with the predicted delta BIC,
-    ``screened`` set, and no model.
-    """
-    t0 = time.perf_counter()
-    eff = instantiate([_resolve(extra)], log)[0]
-    order = eff.order if eff.orders else None
-    penalty = eff.free_parameters() * np.log(_n_data(log))
-    gain = predicted_gain(log, base, eff, floor) if floor is not None and options.screen_share > 0 else None
-    if gain is not None and 2.0 * gain < options.screen_share * penalty:
-        return Candidate(eff.name, eff.channel, float(penalty - 2.0 * gain), float("nan"), eff.physics, gain,
-                         {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True), None, None
-    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=options.candidate_rounds,
-                       iterations=options.candidate_iterations)
-    dll = f.log_likelihood - base.log_likelihood
-    dbic = -2.0 * dll + penalty
-    c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
-                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=order,
-                  prediction=predicted_sightings(f.problem, f.state))
-    return c, f.model, f.poses
 
 
 def predicted_sightings(problem, st) -> dict:
@@ -408,63 +329,6 @@ def reproduced_share(base: dict, a: dict, b: dict) -> float:
     da, db = change(a), change(b)
     size = float(da @ da)
     return float(1.0 - (da - db) @ (da - db) / size) if size > 0 else 0.0
-
-
-def _fit_task(args):
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    return fit_candidate(*args)
-
-
-def _heldout_task(args):
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    log, model, poses, effects, options = args
-    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects], options=options)
-
-
-def _worker_signals():
-    """Workers leave interrupts to the parent (which terminates them) and die quietly on SIGTERM."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list:
-    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled),
-    or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
-
-    On any exception or signal the workers are terminated (the cluster's tasks cancelled) before it
-    propagates, so none outlive the caller."""
-    if client is not None and len(tasks) > 1:
-        futures = client.map(fn, tasks, pure=False)
-        try:
-            results = []
-            for f in futures:
-                results.append(f.result())
-                if progress is not None:
-                    progress.step(1)
-            return results
-        except BaseException:
-            client.cancel(futures)
-            raise
-    results = []
-    if workers > 1 and len(tasks) > 1:
-        pool = multiprocessing.Pool(min(workers, len(tasks)), initializer=_worker_signals)
-        try:
-            for r in pool.imap(fn, tasks):
-                results.append(r)
-                if progress is not None:
-                    progress.step(1)
-            pool.close()
-            pool.join()
-            return results
-        except (AttributeError, TypeError, pickle.PicklingError):
-            results = []
-        finally:
-            pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
-    for t in tasks:
-        results.append(fn(t))
-        if progress is not None:
-            progress.step(1)
-    return results
 
 
 # --------------------------------------------------------------------------- verdict
@@ -694,106 +558,6 @@ class Diagnosis:
             if self.write_report is not None:
                 self.write_report(tmp / "report.html", self.log, self)
         return Path(out)
-
-
-def diagnose(log: Log, model: Model, poses: np.ndarray, extra_effects=(), workers: int = 2,
-             progress=None, candidates=None, client=None, options: DiagnoseOptions = DEFAULTS) -> Diagnosis:
-    """Diagnose ``model`` on ``log`` starting from ``poses`` (T+1, 3).
-
-    ``extra_effects``: user effect classes to consider besides the catalog.
-    ``candidates``: names of the effects to try (default: every applicable one).
-    """
-    o = options
-    t0 = time.perf_counter()
-    pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
-    pool.update({cls.name: cls for cls in extra_effects})
-    chosen = chosen_candidates(candidates, extra_effects)
-    if chosen is not None:                      # the user narrows the search to these effects
-        pool = {n: c for n, c in pool.items() if n in chosen}
-    pool = list(pool.values())
-    if progress is not None:
-        progress.stage("refit model", None)
-    present = of_model(model.effects, extra_effects)
-    present_names = set(model.effects)
-    refit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds, iterations=o.candidate_iterations)
-    # the reference every candidate is scored against: the same warm-started procedure, nothing added
-    base = effect_fit.fit(log, refit.model, refit.poses, present, rounds=o.candidate_rounds,
-                          iterations=o.candidate_iterations)
-    chs = channels(refit.problem, refit.state, o.command_change)
-    rep = channel_report(chs, o)
-    todo, skipped = [], {}
-    for cls in pool:
-        if cls.name in present_names:
-            continue
-        why = cls(log).applicable(log)
-        if why:
-            skipped[cls.name] = why
-        else:
-            todo.append(cls)
-    members = [m for cls in todo for m in family_members(cls)]
-    if progress is not None:
-        progress.stage("candidates", len(members), unit="effects")
-    floor = predicted_floor(base.problem, base.state) if o.screen_share > 0 else None
-    fitted = _parallel(_fit_task, [(log, refit, base, spec(m), o, floor) for m in members], workers, progress, client)
-    keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
-    fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
-    cands = [c for c, _, _ in fitted]
-    struct = structures(rep, o)
-    explains = {cls.name: cls.explains for cls in pool}
-    heldout_rounds(log, base, fitted, members, built_for(strong_structures(struct, o), explains), workers,
-                   progress, client, o)
-    cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
-    v, words = verdict(cands, struct, explains, o)
-
-    def challenge(cls):               # the proposal, fitted as a candidate against the same base
-        c = fit_candidate(log, refit, base, cls, o)[0]
-        return c.delta_log_likelihood, c.delta_bic
-    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, challenge,
-                               o.proposal_challenge, o.lookalike_bic)
-    alike = lookalikes(cands, v, {cls.name: cls.distinguished_by for cls in pool}, options=o,
-                       base=predicted_sightings(base.problem, base.state))
-    return Diagnosis(rep, cands, v, words + family_words(cands, v) + lookalike_words(alike), struct, refit, chs, time.perf_counter() - t0,
-                     skipped, correlation=correlation(chs), lookalikes=alike,
-                     predictive=open_loop_error(refit.problem, refit.state, refit.poses), proposal=found, options=o)
-
-
-def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
-                   progress=None, client=None, options: DiagnoseOptions = DEFAULTS) -> None:
-    """Held-out scores (``heldout_nll_drop``) for the fitted candidates that improve BIC, lowest delta BIC first,
-    ``workers`` models a round (the base model with the first): once one is supported (:func:`is_supported`),
-    only those within the look-alike margin of it can still change the verdict or its look-alike group, and the
-    rest keep ``heldout_skipped`` = :data:`DECIDED`. The folds are most of a diagnosis's cost.
-
-    ``fitted``: (candidate, model, poses) per member of ``members`` (their classes)."""
-    o = options
-    queue = sorted((i for i, (c, _, _) in enumerate(fitted) if c.delta_bic < o.heldout_gate and not c.screened),
-                   key=lambda i: fitted[i][0].delta_bic)
-    if not queue:
-        return
-    if progress is not None:
-        progress.stage("held-out", len(queue) + 1, unit="models")
-    present = [spec(type(e)) for e in base.effects]
-    margin = max(o.bic_tie, o.lookalike_bic)
-    base_score = None
-    while queue:
-        take = queue[:max(workers - (base_score is None), 1)]
-        queue = queue[len(take):]
-        tasks = ([(log, base.model, base.poses, present, o)] if base_score is None else []) + [
-            (log, fitted[i][1], fitted[i][2], present + [spec(members[i])], o) for i in take]
-        held = _parallel(_heldout_task, tasks, workers, progress, client)
-        if base_score is None:
-            base_score, held = held[0], held[1:]
-        for i, h in zip(take, held):
-            fitted[i][0].heldout_nll_drop = float(h - base_score)
-        lead = next((c for c, _, _ in sorted(fitted, key=lambda f: f[0].delta_bic)
-                     if np.isfinite(c.heldout_nll_drop) and is_supported(c, matches, o)), None)
-        if lead is not None:
-            left = [i for i in queue if fitted[i][0].delta_bic < lead.delta_bic + margin]
-            for i in set(queue) - set(left):
-                fitted[i][0].heldout_skipped = DECIDED
-            if progress is not None and len(left) < len(queue):
-                progress.step(len(queue) - len(left))
-            queue = left
 
 
 def chosen_candidates(candidates, extra_effects=()) -> set | None:

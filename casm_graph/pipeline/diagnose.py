@@ -1,18 +1,29 @@
-"""Diagnosis of a calibrated log: ``diagnose`` in memory (a Calibration or a model), ``run`` as the command does it."""
+"""Diagnosis of a calibrated log: ``diagnose`` in memory (a Calibration or a model), ``run`` as the command does it.
+
+One procedure for every log: the model is refitted on the log as it stands and its residual channels tested
+(:mod:`casm_graph.analysis.diagnosis`); the candidate effects are fitted and scored against the same procedure
+without them by the part for the model's kind of action model (:mod:`casm_graph.analysis.candidates`); the verdict
+weighs them with the residual structure; the sparse regression's proposal challenges a catalog verdict or explains
+what none does; look-alikes are named.
+"""
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from casm_graph.analysis.before_after import compare, load_before
-from casm_graph.analysis.diagnose_continuous import diagnose as diagnose_continuous
-from casm_graph.analysis.diagnosis import DEFAULTS, DiagnoseOptions, Diagnosis
-from casm_graph.analysis.diagnosis import diagnose as diagnose_table
+from casm_graph.analysis.candidates import bench
+from casm_graph.analysis.correlation import correlation
+from casm_graph.analysis.diagnosis import (DEFAULTS, DiagnoseOptions, Diagnosis, channel_report, discover,
+                                           family_words, lookalike_words, lookalikes, open_loop_error, structures,
+                                           verdict)
 from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit import trajectory
 from casm_graph.fit.calibration import Calibration
+from casm_graph.fit.residuals import channels
 from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
@@ -52,13 +63,23 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     model = model.for_log(log)
     if poses is None:
         poses = trajectory.smoothed(log, model, progress)
-    if log.controls is not None:
-        graph = calibration.options.command_graph if isinstance(calibration, Calibration) else None
-        diag = diagnose_continuous(log, model, poses, progress=progress, extra_effects=extra_effects,
-                                   candidates=candidates, options=options, graph=graph)
-    else:
-        diag = diagnose_table(log, model, poses, extra_effects=extra_effects, workers=workers, progress=progress,
-                              candidates=candidates, client=client, options=options)
+    t0 = time.perf_counter()
+    o = options
+    calibrated = calibration.options if isinstance(calibration, Calibration) else None
+    part = bench(model.action.kind)(log, model, poses, o, extra_effects=extra_effects, candidates=candidates,
+                                    workers=workers, client=client, progress=progress, calibrated=calibrated)
+    chs = channels(part.problem, part.state, o.command_change)
+    rep = channel_report(chs, o)
+    struct = structures(rep, o)
+    cands, skipped, explains, separated_by = part.score(struct)
+    v, words = verdict(cands, struct, explains, o, last=part.last)
+    v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, part.challenge,
+                               o.proposal_challenge, o.lookalike_bic)
+    alike = lookalikes(cands, v, separated_by, relative=part.relative, options=o, base=part.base_prediction)
+    words += family_words(cands, v) + lookalike_words(alike) + part.notes(cands)
+    diag = Diagnosis(rep, cands, v, words, struct, part.fit, chs, time.perf_counter() - t0, skipped,
+                     set_aside=part.set_aside, correlation=correlation(chs), lookalikes=alike,
+                     predictive=open_loop_error(part.problem, part.state, part.poses), proposal=found, options=o)
     diag.log, diag.write_report = log, report.diagnosis
     if before is not None:
         diag.before_after = compare(before.to_json() if isinstance(before, Diagnosis) else before, diag.to_json())

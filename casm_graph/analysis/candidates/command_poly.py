@@ -1,0 +1,270 @@
+"""A command map's candidates, on the command-model graph of :mod:`casm_graph.fit.continuous`: the model is
+re-settled on the log (poses, command map and polynomial; noise levels as given), the catalog effects these
+graphs can take (``continuous.EFFECTS``) are the candidates, the delays placed by their profile
+(:func:`casm_graph.fit.continuous.profile`), the others fitted through their hooks, and every one scored by delta
+BIC against one base, each settled the same way at its value. Time-blocked held-out folds are not run for these,
+so the verdict's second line of evidence is the residual structure the effect is built for (a covariate's bins,
+or the sparse regression's terms). Noise-only candidates (false detections, range-dependent noise) are scored at
+the base's poses, with held-out folds (:func:`noise_candidate`).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import partial
+
+import numpy as np
+
+from casm_graph.analysis.candidates.base import Bench
+from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, best_of_family, chosen_candidates,
+                                           family_members, folds, predicted_sightings)
+from casm_graph.fit import continuous as CT
+from casm_graph.fit.result import Fit
+from casm_graph.fit.solve import least_squares
+from casm_graph.graph import augmented
+from casm_graph.graph.problem import Problem
+from casm_graph.io.log import Log, LogError
+from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
+from casm_graph.models.model import Model
+
+NO_FOLDS = "held-out folds are not run for continuous-command logs"
+WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
+                        "{:.3f} s ({} first-order stage{})."}
+
+
+def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
+    """Effects fitted through their hooks that may be tried on ``log`` (catalog and ``extra_effects``, not in the
+    model yet), and the others with the reason each is skipped."""
+    tried, skipped = [], {}
+    classes = {**{n: c for n, c in REGISTRY.items() if n not in CT.EFFECTS}, **{c.name: c for c in extra_effects}}
+    for name, cls in sorted(classes.items()):
+        if name in model.effects:
+            continue
+        if name in CT.NOISE_EFFECTS:
+            skipped[name] = "added on request (calibrate --effect), not diagnosed"
+            continue
+        try:
+            CT.check_effects([cls], log)
+        except LogError as err:
+            skipped[name] = str(err).split(": ", 1)[-1]
+            continue
+        tried.extend(m(log) for m in family_members(cls))
+    return tried, skipped
+
+
+def mixture_share(reading: np.ndarray, bearing: np.ndarray, reading_sigma, bearing_sigma: float, span: float,
+                  iterations: int = 200, tol: float = 1e-7) -> float:
+    """The false-detection share that maximises the mixture's likelihood of these residuals (sigmas held), by EM."""
+    f = FalseDetections.start[0]
+    for _ in range(iterations):
+        w = mixture_terms(reading, bearing, reading_sigma, bearing_sigma, f, span)["weight"]
+        new = share(w) if len(w) else f
+        if abs(new - f) < tol:
+            return new
+        f = new
+    return f
+
+
+def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, effect, use: tuple, n: int,
+                    options: DiagnoseOptions = DEFAULTS) -> Candidate:
+    """A noise-only ``effect`` scored at the base's poses (T+1, 3), which a noise model does not move: its
+    parameters from the sightings' residuals, its log-likelihood against the base's on the same sightings, and
+    on ``options.folds`` time blocks the parameters learned from the others scoring each block. A false-detection
+    mixture is scored on every sighting, the ones the gate sets aside too (their number and size are its
+    evidence), the base's sigmas held; an effect that scales the readings' sigma on the readings the gate kept
+    (``use``), the reading sigma concentrated out of both. A refit of the poses would let them trade motion
+    residuals for sighting residuals, which confounds the comparison of two noise models (BENCHMARKS.md)."""
+    res = CT.sighting_residuals(log, poses[log.obs_step], model, effects)
+    noisy = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.noise_only]
+    scale = augmented.reading_scale(noisy, augmented.theta_from_model(list(effects), model), res["distance"])
+    rr, rb, d = res["reading"], res["bearing_residual"], res["distance"]
+    if effect.mixture:
+        rows = np.isfinite(log.obs_reading) | np.isfinite(log.obs_bearing)
+        span = reading_span(log.obs_reading)
+        sr, sb = model.reading_sigma * scale, model.bearing_sigma
+
+        def fit(sel):
+            return mixture_share(rr[sel], rb[sel], sr[sel], sb, span)
+
+        def gain(sel, f):
+            m = mixture_terms(rr[sel], rb[sel], sr[sel], sb, f, span)
+            return m["log_density"] - m["gaussian"]
+
+        def described(f):
+            return effect.describe(np.array([f]))
+    else:
+        rows = use[0] & np.isfinite(rr)
+        z = rr / scale                       # in units of the reading sigma, the base's own scales out
+
+        def fit(sel):
+            th = effect.estimate_noise(np.asarray(effect.start, float), z[sel], None, d[sel],
+                                       {"weight": np.ones(int(sel.sum())), "reading_scale": np.ones(int(sel.sum()))})
+            s1 = effect.reading_scale(th, d, {})
+            return th, s1, np.mean(z[sel] ** 2), np.mean((z[sel] / s1[sel]) ** 2)
+
+        def gain(sel, p):
+            _, s1, v0, v1 = p
+            return (-0.5 * (z[sel] / s1[sel]) ** 2 / v1 - 0.5 * np.log(v1) - np.log(s1[sel])
+                    + 0.5 * z[sel] ** 2 / v0 + 0.5 * np.log(v0))
+
+        def described(p):
+            return effect.describe(p[0])
+    p = fit(rows)
+    dll = float(np.sum(gain(rows, p)))
+    heldout = sum(float(np.sum(gain(rows & ~train, fit(rows & train)))) for train in folds(log, options.folds))
+    return Candidate(effect=effect.name, channel=effect.channel,
+                     delta_bic=-2 * dll + effect.free_parameters() * np.log(n), heldout_nll_drop=float(heldout),
+                     explanation=effect.physics, delta_log_likelihood=dll, parameters=described(p), heldout_skipped="")
+
+
+class CommandBench(Bench):
+    """The candidates of a continuous-command log, settled on the coarse graph against one base settled alike.
+
+    Each candidate is settled in ``options.settle_rounds`` rounds (a latency's velocity window follows its delay
+    from one to the next). With ``options.decide_rounds`` above that (off by default), the leaders (the candidates
+    a verdict or a look-alike group could name) and the base are then settled until their log-likelihoods stop
+    moving: an effect whose optimum lies away from the base's poses needs more rounds to reach it than one whose
+    optimum is near. The knot spacings are the calibration's (``calibrated.command_graph``), else the model's own
+    (:func:`casm_graph.fit.continuous.options_of`)."""
+
+    kind = "command_poly"
+
+    def __init__(self, log: Log, model: Model, poses: np.ndarray, options: DiagnoseOptions = DEFAULTS,
+                 extra_effects=(), candidates=None, workers: int = 2, client=None, progress=None, calibrated=None):
+        super().__init__(log, model, poses, options)
+        o = options
+        self.extra_effects, self.progress = extra_effects, progress
+        graph = calibrated.command_graph if calibrated is not None else CT.options_of(model)
+        self.graph = graph
+        self.search = replace(graph.profile, lag_order_support=o.lag_order_support)    # the diagnosis's own support
+        self.chosen = chosen_candidates(candidates, extra_effects)
+        if progress is not None:
+            progress.stage("refit model", None)
+        self.own = own = CT.hooked_effects(log, model, extra_effects)
+        lay = CT.layout(log, graph.full_knot_dt)
+        use = CT.gate(log, poses[log.obs_step], model, effects=own)
+        problem = Problem(log, model, own, lay=lay, gate=use, poses=poses[lay.knots])
+        st, _ = least_squares(problem, problem.state(poses[lay.knots], model), max_iterations=o.settle_iterations)
+        self.model = model = problem.with_state(model, st)
+        full = CT.fill_in(log, model, lay.knots, st.poses)
+        self.fit = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
+        self.problem, self.state, self.poses = problem, st, full
+        self.set_aside = problem.set_aside(model)
+        self.coarse = CT.layout(log, graph.coarse_knot_dt)
+        self.cuse = CT.gate(log, full[log.obs_step], model, effects=own)
+        self.start = full[self.coarse.knots]
+        self.n = CT.residual_rows(log, self.coarse, self.cuse)
+        self.rounds, self.ll0 = o.settle_rounds, None
+
+    def wanted(self, name: str) -> bool:
+        return self.chosen is None or name in self.chosen
+
+    def settle_base(self, rounds: int):
+        return CT.settled_log_likelihood(self.log, self.coarse, self.model, self.cuse, self.start, self.own,
+                                         rounds=rounds, iterations=self.search.iterations)
+
+    def settle_hooked(self, rounds: int, e):
+        """A hooked effect's candidate (the proposal's too), settled as the base is."""
+        return CT.settled_log_likelihood(self.log, self.coarse, self.model, self.cuse, self.start, [*self.own, e],
+                                         rounds=rounds, iterations=self.search.iterations)
+
+    def settle_profiled(self, rounds: int, lagged: Model):
+        return CT.settled_log_likelihood(self.log, self.coarse, lagged, self.cuse, self.start, self.own,
+                                         rounds=rounds, iterations=self.search.iterations)
+
+    def score(self, structure: list[dict]) -> tuple[list[Candidate], dict, dict, dict]:
+        o, log, model, progress, n = self.options, self.log, self.model, self.progress, self.n
+        hooked, skipped = hooked_candidates(log, model, self.extra_effects)
+        cands = []
+        hooked = [e for e in hooked if self.wanted(e.name)]
+        todo = [m for m in CT.EFFECTS if CT.effect_value(model, m) == 0 and m not in skipped and self.wanted(m)]
+        if progress is not None and todo + hooked:
+            progress.stage("candidates", len(todo) + len(hooked), unit="effects")
+        settles = {}              # candidate -> how to settle it again, for the leaders' decision
+        if todo or hooked:        # every candidate scored against one base, settled as they are
+            self.ll0, _, pb0, st0 = self.settle_base(o.settle_rounds)
+            self.base_prediction = predicted_sightings(pb0, st0)
+        for name in todo:
+            prof = CT.profile(log, self.fit, name, self.own, options=self.search, knot_dt=self.graph.coarse_knot_dt)
+            lagged = CT.with_effect(model, name, prof.value, prof.order)
+            ll, _, pb, s = self.settle_profiled(o.settle_rounds, lagged)
+            gain = float(ll - self.ll0)
+            eff = REGISTRY[name]
+            (param,) = eff.params
+            what = WHAT[name].format(prof.value, prof.order, "s" if prof.order > 1 else "")
+            cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=-2 * gain + prof.order * np.log(n),
+                                   heldout_nll_drop=float("nan"), explanation=f"{what} {eff.physics}",
+                                   delta_log_likelihood=gain,
+                                   parameters={param: prof.value, **({"order": prof.order} if prof.order > 1 else {})},
+                                   heldout_skipped=NO_FOLDS,
+                                   prediction=predicted_sightings(pb, s)))
+            settles[id(cands[-1])] = (partial(self.settle_profiled, lagged=lagged), prof.order)
+            if progress is not None:
+                progress.step(1)
+        for e in hooked:
+            if e.noise_only:                  # scored at the base's poses, without a refit
+                cands.append(noise_candidate(log, model, self.poses, self.own, e, self.cuse, n, o))
+                if progress is not None:
+                    progress.step(1)
+                continue
+            ll, m, pb, s = self.settle_hooked(o.settle_rounds, e)
+            gain = float(ll - self.ll0)
+            cands.append(Candidate(effect=e.name, channel=e.channel,
+                                   delta_bic=-2 * gain + e.free_parameters() * np.log(n),
+                                   heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
+                                   parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
+                                   heldout_skipped=NO_FOLDS,
+                                   prediction=predicted_sightings(pb, s)))
+            settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
+            if progress is not None:
+                progress.step(1)
+        cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
+        cands.sort(key=lambda c: c.delta_bic)
+        self.decide(cands, settles)
+        names = [*(m for m in CT.EFFECTS if m not in skipped and self.wanted(m)), *(e.name for e in hooked)]
+        kinds = {**REGISTRY, **{e.name: type(e) for e in hooked}}
+        self.last = tuple(e.name for e in hooked if e.mixture)
+        return (cands, skipped, {m: kinds[m].explains for m in names},
+                {m: kinds[m].distinguished_by for m in names})
+
+    def decide(self, cands: list[Candidate], settles: dict) -> None:
+        """With ``options.decide_rounds`` above the settle rounds, the leaders and the base settled again for up
+        to that many rounds and re-scored (``cands`` re-sorted in place)."""
+        o, n = self.options, self.n
+        leaders = [c for c in cands if id(c) in settles and c.delta_bic <= o.bic_support
+                   and c.delta_bic <= o.lookalike_gain * cands[0].delta_bic]
+        if len(leaders) <= 1 or o.decide_rounds <= o.settle_rounds:
+            return
+        self.rounds = o.decide_rounds
+        if self.progress is not None:
+            self.progress.stage("settling the leaders", len(leaders), unit="effects")
+        self.ll0, _, pb0, st0 = self.settle_base(o.decide_rounds)
+        self.base_prediction = predicted_sightings(pb0, st0)
+        for c in leaders:
+            again, k = settles[id(c)]
+            ll, m, pb, s = again(o.decide_rounds)
+            c.parameters = dict(m.effects.get(c.effect, c.parameters))    # a hooked effect's moved with the rounds
+            c.delta_log_likelihood = float(ll - self.ll0)
+            c.delta_bic = -2 * c.delta_log_likelihood + k * np.log(n)
+            c.prediction = predicted_sightings(pb, s)
+            if self.progress is not None:
+                self.progress.step(1)
+        cands.sort(key=lambda c: c.delta_bic)
+
+    def challenge(self, cls) -> tuple[float, float]:
+        """The proposal, settled as a hooked candidate against the same base."""
+        e = cls(self.log)
+        if self.ll0 is None:
+            self.ll0 = self.settle_base(self.rounds)[0]
+        gain = float(self.settle_hooked(self.rounds, e)[0] - self.ll0)
+        return gain, -2 * gain + e.free_parameters() * np.log(self.n)
+
+    @property
+    def relative(self) -> float:
+        return self.options.lookalike_relative
+
+    def notes(self, candidates: list[Candidate]) -> list[str]:
+        if not candidates:
+            return []
+        return ["On continuous-command logs held-out folds score only the noise candidates (at the base's poses); "
+                "the others need BIC and the residual structure they are built for."]

@@ -1,0 +1,252 @@
+"""An action table's candidates: each effect added to the refitted model and fitted as the calibration fits
+(warm start), scored by delta BIC against the same procedure without it and, for those that lower it, by the
+held-out log-likelihood on time-blocked folds (:func:`heldout_log_likelihood`). The score test screens out the
+candidates that cannot gain enough to be worth fitting; the fits run on worker processes or a Dask cluster."""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import signal
+import time
+from typing import Callable
+
+import numpy as np
+
+from casm_graph.analysis.candidates.base import Bench
+from casm_graph.analysis.diagnosis import (DECIDED, DEFAULTS, SCREENED, Candidate, DiagnoseOptions, best_of_family,
+                                           built_for, chosen_candidates, folds, family_members, is_supported,
+                                           predicted_sightings, strong_structures)
+from casm_graph.analysis.score_test import predicted_floor, predicted_gain
+from casm_graph.fit import effect_fit
+from casm_graph.graph.augmented import instantiate
+from casm_graph.io.log import Log
+from casm_graph.models.effects import REGISTRY, get, of_model, spec
+from casm_graph.models.effects.base import held
+from casm_graph.models.model import Model
+
+
+def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
+                           detail: list | None = None, options: DiagnoseOptions = DEFAULTS) -> float:
+    """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
+    a block say about it.
+
+    Per fold: the model is fitted on the rest; then, with the effects' parameters and the noise
+    levels held at those values, table, polynomial and poses are fitted once with the block and once
+    without, and the block's term is the difference of the two log-likelihoods. The table and
+    polynomial are the nuisance here: on a six-minute log many actions run only inside one block,
+    and a table learned without it predicts that block so badly (hundreds of nats either way) that
+    the comparison of two models drowned in it. The fit with the block starts from the model's own
+    full-log poses: the training poses drifted over a block without sightings and could stop in another
+    basin (640 nats lower on one of 36 folds of six Aibo effect logs, never more than 0.2 higher:
+    benchmarks/heldout_stability.py --folds); the fit without it is the training problem with effects
+    and noise held, so the training poses are already its optimum.
+    ``detail`` (a list) receives per fold the log-likelihood with the block and without it;
+    ``options``: the folds and the bounds of each fold's least squares.
+    """
+    total = 0.0
+    fixed = [held(_resolve(e)) for e in effects]
+    its, tol = options.fold_iterations, options.fold_tol
+    for mask in folds(log, options.folds):
+        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
+        with_block, without = (
+            effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=its,
+                           obs_mask=m, fit_noise=False, rel_tol=tol).log_likelihood
+            for m, start in ((None, poses), (mask, tr.poses)))
+        if detail is not None:
+            detail.append({"with_block": with_block, "without_block": without})
+        total += with_block - without
+    return total
+
+
+def n_data(log: Log) -> int:
+    return int(np.sum(np.isfinite(log.obs_reading)) + np.sum(np.isfinite(log.obs_bearing)))
+
+
+def _resolve(extra):
+    """A catalog name (how effects travel to worker processes) back to its class."""
+    return get(extra) if isinstance(extra, str) else extra
+
+
+def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
+                  options: DiagnoseOptions = DEFAULTS, floor: float | None = None):
+    """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
+
+    Returns the candidate (held-out score still to come) and the fitted model and poses. With ``floor`` (the
+    base's :func:`~casm_graph.analysis.score_test.predicted_floor`) a candidate whose score-test gain is below
+    ``options.screen_share`` of its BIC penalty is not fitted: it returns with the predicted delta BIC,
+    ``screened`` set, and no model.
+    """
+    t0 = time.perf_counter()
+    eff = instantiate([_resolve(extra)], log)[0]
+    order = eff.order if eff.orders else None
+    penalty = eff.free_parameters() * np.log(n_data(log))
+    gain = predicted_gain(log, base, eff, floor) if floor is not None and options.screen_share > 0 else None
+    if gain is not None and 2.0 * gain < options.screen_share * penalty:
+        return Candidate(eff.name, eff.channel, float(penalty - 2.0 * gain), float("nan"), eff.physics, gain,
+                         {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True), None, None
+    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=options.candidate_rounds,
+                       iterations=options.candidate_iterations)
+    dll = f.log_likelihood - base.log_likelihood
+    dbic = -2.0 * dll + penalty
+    c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
+                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=order,
+                  prediction=predicted_sightings(f.problem, f.state))
+    return c, f.model, f.poses
+
+
+def _fit_task(args):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    return fit_candidate(*args)
+
+
+def _heldout_task(args):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    log, model, poses, effects, options = args
+    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects], options=options)
+
+
+def _worker_signals():
+    """Workers leave interrupts to the parent (which terminates them) and die quietly on SIGTERM."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list:
+    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled),
+    or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
+
+    On any exception or signal the workers are terminated (the cluster's tasks cancelled) before it
+    propagates, so none outlive the caller."""
+    if client is not None and len(tasks) > 1:
+        futures = client.map(fn, tasks, pure=False)
+        try:
+            results = []
+            for f in futures:
+                results.append(f.result())
+                if progress is not None:
+                    progress.step(1)
+            return results
+        except BaseException:
+            client.cancel(futures)
+            raise
+    results = []
+    if workers > 1 and len(tasks) > 1:
+        pool = multiprocessing.Pool(min(workers, len(tasks)), initializer=_worker_signals)
+        try:
+            for r in pool.imap(fn, tasks):
+                results.append(r)
+                if progress is not None:
+                    progress.step(1)
+            pool.close()
+            pool.join()
+            return results
+        except (AttributeError, TypeError, pickle.PicklingError):
+            results = []
+        finally:
+            pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
+    for t in tasks:
+        results.append(fn(t))
+        if progress is not None:
+            progress.step(1)
+    return results
+
+
+def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
+                   progress=None, client=None, options: DiagnoseOptions = DEFAULTS) -> None:
+    """Held-out scores (``heldout_nll_drop``) for the fitted candidates that improve BIC, lowest delta BIC first,
+    ``workers`` models a round (the base model with the first): once one is supported (:func:`is_supported`),
+    only those within the look-alike margin of it can still change the verdict or its look-alike group, and the
+    rest keep ``heldout_skipped`` = :data:`DECIDED`. The folds are most of a diagnosis's cost.
+
+    ``fitted``: (candidate, model, poses) per member of ``members`` (their classes)."""
+    o = options
+    queue = sorted((i for i, (c, _, _) in enumerate(fitted) if c.delta_bic < o.heldout_gate and not c.screened),
+                   key=lambda i: fitted[i][0].delta_bic)
+    if not queue:
+        return
+    if progress is not None:
+        progress.stage("held-out", len(queue) + 1, unit="models")
+    present = [spec(type(e)) for e in base.effects]
+    margin = max(o.bic_tie, o.lookalike_bic)
+    base_score = None
+    while queue:
+        take = queue[:max(workers - (base_score is None), 1)]
+        queue = queue[len(take):]
+        tasks = ([(log, base.model, base.poses, present, o)] if base_score is None else []) + [
+            (log, fitted[i][1], fitted[i][2], present + [spec(members[i])], o) for i in take]
+        held = _parallel(_heldout_task, tasks, workers, progress, client)
+        if base_score is None:
+            base_score, held = held[0], held[1:]
+        for i, h in zip(take, held):
+            fitted[i][0].heldout_nll_drop = float(h - base_score)
+        lead = next((c for c, _, _ in sorted(fitted, key=lambda f: f[0].delta_bic)
+                     if np.isfinite(c.heldout_nll_drop) and is_supported(c, matches, o)), None)
+        if lead is not None:
+            left = [i for i in queue if fitted[i][0].delta_bic < lead.delta_bic + margin]
+            for i in set(queue) - set(left):
+                fitted[i][0].heldout_skipped = DECIDED
+            if progress is not None and len(left) < len(queue):
+                progress.step(len(queue) - len(left))
+            queue = left
+
+
+
+
+class TableBench(Bench):
+    """The candidates of an action-table log, refitted with the model and scored in-sample and held out."""
+
+    kind = "table"
+
+    def __init__(self, log: Log, model: Model, poses: np.ndarray, options: DiagnoseOptions = DEFAULTS,
+                 extra_effects=(), candidates=None, workers: int = 2, client=None, progress=None, calibrated=None):
+        super().__init__(log, model, poses, options)
+        o = options
+        self.extra_effects, self.workers, self.client, self.progress = extra_effects, workers, client, progress
+        pool = {n: REGISTRY[n] for n in sorted(REGISTRY)}
+        pool.update({cls.name: cls for cls in extra_effects})
+        chosen = chosen_candidates(candidates, extra_effects)
+        if chosen is not None:                      # the user narrows the search to these effects
+            pool = {n: c for n, c in pool.items() if n in chosen}
+        self.pool = list(pool.values())
+        if progress is not None:
+            progress.stage("refit model", None)
+        self.present_names = set(model.effects)
+        present = of_model(model.effects, extra_effects)
+        self.fit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds,
+                                  iterations=o.candidate_iterations)
+        # the reference every candidate is scored against: the same warm-started procedure, nothing added
+        self.base = effect_fit.fit(log, self.fit.model, self.fit.poses, present, rounds=o.candidate_rounds,
+                                   iterations=o.candidate_iterations)
+        self.problem, self.state, self.poses = self.fit.problem, self.fit.state, self.fit.poses
+
+    def score(self, structure: list[dict]) -> tuple[list[Candidate], dict, dict, dict]:
+        o, log, progress = self.options, self.log, self.progress
+        todo, skipped = [], {}
+        for cls in self.pool:
+            if cls.name in self.present_names:
+                continue
+            why = cls(log).applicable(log)
+            if why:
+                skipped[cls.name] = why
+            else:
+                todo.append(cls)
+        members = [m for cls in todo for m in family_members(cls)]
+        if progress is not None:
+            progress.stage("candidates", len(members), unit="effects")
+        floor = predicted_floor(self.base.problem, self.base.state) if o.screen_share > 0 else None
+        fitted = _parallel(_fit_task, [(log, self.fit, self.base, spec(m), o, floor) for m in members], self.workers,
+                           progress, self.client)
+        keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
+        fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
+        cands = [c for c, _, _ in fitted]
+        explains = {cls.name: cls.explains for cls in self.pool}
+        heldout_rounds(log, self.base, fitted, members, built_for(strong_structures(structure, o), explains),
+                       self.workers, progress, self.client, o)
+        cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
+        self.base_prediction = predicted_sightings(self.base.problem, self.base.state)
+        return cands, skipped, explains, {cls.name: cls.distinguished_by for cls in self.pool}
+
+    def challenge(self, cls) -> tuple[float, float]:
+        c = fit_candidate(self.log, self.fit, self.base, cls, self.options)[0]
+        return c.delta_log_likelihood, c.delta_bic
