@@ -20,7 +20,7 @@ from casm_graph.analysis import groundtruth
 from casm_graph.io import mrclam
 from casm_graph.io.log import load
 from casm_graph.pipeline import calibrate as calibrate_run
-from casm_graph.report import command as command_report
+from casm_graph.report import pages
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -35,7 +35,7 @@ def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: 
     log, fit = calibrate_run.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects))
     seconds = time.perf_counter() - t0
     ev = groundtruth.evaluate(load(bundle), fit)
-    command_report.calibration(out / f"robot{robot}" / "report.html", log, fit, ev)
+    pages.calibration(out / f"robot{robot}" / "report.html", log, fit, evaluation=ev)
     ev["calibrate_seconds"] = seconds
     return ev
 

@@ -237,6 +237,31 @@ def test_command_graph_options_are_passed_in_and_recorded():
     assert np.all(np.isfinite(v)) and np.corrcoef(v[:, 0], log.controls[:, 0])[0, 1] > 0.9
 
 
+def test_one_calibration_page_for_every_kind_of_action_model(cal, tmp_path):
+    """The same page for an action table and a command map: the same sections in the same order, the action
+    model's own between the fit and the sensor; the residuals through the model's sensor effects (a lens fitted on
+    the table log moves its reading residuals)."""
+    import re
+
+    floor_log, _ = cg.simulate("floor", minutes=2, seed=0)
+    floor = cg.calibrate(floor_log, command_graph=cg.CommandGraphOptions(full_knot_dt=0.5, full_rounds=1))
+    heads = {}
+    for name, c in (("table", cal), ("floor", floor)):
+        c.save(tmp_path / name)
+        heads[name] = re.findall(r"<h2>([^<]*)</h2>", (tmp_path / name / "report.html").read_text())
+    assert "Action table" in heads["table"] and "Command maps" in heads["floor"]
+    common = [h for h in heads["table"] if h != "Action table"]
+    assert common == [h for h in heads["floor"] if h != "Command maps"]
+    assert heads["table"].index("Action table") == heads["floor"].index("Command maps") == common.index("Sensor model")
+    lens = cg.calibrate(cal.log, effects=["lens_distortion"])
+    poses = lens.fit.poses[cal.log.obs_step]
+    through = continuous.sighting_residuals(cal.log, poses, lens.model,
+                                            [k(cal.log) for k in lens.fit.notes["hooked_effects"]])["reading"]
+    plain = continuous.sighting_residuals(cal.log, poses, lens.model)["reading"]
+    assert [k.name for k in lens.fit.notes["hooked_effects"]] == ["lens_distortion"]
+    assert np.nanmax(np.abs(through - plain)) > 0
+
+
 def test_what_follows_a_calibration_rebuilds_its_graph(tmp_path):
     """Diagnosis, uncertainty and the truth check rebuild the graph on the knots the model was calibrated with
     (model.json ``fit.options.command_graph``, else ``fit.knot_dt``), not on the defaults; a bad recorded

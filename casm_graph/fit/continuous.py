@@ -120,7 +120,7 @@ def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects
     sensor = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.channel == "sensor"]
     if sensor:
         ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan,
-               "velocity": sighting_means(log, step_velocities(log, model), velocity_window(model, effects))}
+               "velocity": sighting_means(log, model.step_velocities(log), velocity_window(model, effects))}
         fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index], model.reading_basis)
         pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
                         np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
@@ -142,11 +142,6 @@ def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GAT
     return ~(r > z), ~(b > z)
 
 
-def step_velocities(log: Log, model: Model) -> np.ndarray:
-    """(T, 3) body-frame velocity of every command step under the model."""
-    return model.command.velocities(log.controls, log.dt)
-
-
 def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
     return W.dead_reckon_steps(model.command.velocities(controls, dt), dt, start)
@@ -154,7 +149,7 @@ def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.nd
 
 def fill_in(log: Log, model: Model, knots: np.ndarray, knot_poses: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses: each knot-to-knot stretch dead-reckoned, its closure error spread linearly."""
-    return G.fill_between(knots, knot_poses, step_velocities(log, model) * log.dt[:, None])
+    return G.fill_between(knots, knot_poses, model.step_velocities(log) * log.dt[:, None])
 
 
 # --------------------------------------------------------------------------- global start

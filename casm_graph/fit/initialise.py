@@ -317,7 +317,7 @@ def initialise(log: Log, model: Model, stride: int = 5, cell: float | None = Non
     n_seg = len(seg_start)
     has_b = ~np.isnan(log.obs_bearing)
     dirs = np.arctan2(lm[:, 1] - mean[obs_knot, 1], lm[:, 0] - mean[obs_knot, 0])
-    seg_act = np.searchsorted(model.action_ids, act[seg_start])
+    seg_act = model.action.rows_of(act[seg_start])
     agreement = float("nan")
     if has_b.any():
         head = _headings(seg_of_knot, seg_act, t_knot, obs_knot[has_b], dirs[has_b], log.obs_bearing[has_b])

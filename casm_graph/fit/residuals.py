@@ -51,6 +51,18 @@ def motion(poses: np.ndarray, lay: Layout, model: Model) -> np.ndarray:
     return r
 
 
+def step_motion(poses: np.ndarray, log: Log, model: Model) -> np.ndarray:
+    """(T, 3) measured minus predicted displacement of every step (``poses`` (T+1, 3)) under the action model's
+    velocities, start body frame: any kind of action model, its effects left out."""
+    a, b = poses[:-1], poses[1:]
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    meas = np.column_stack([c * ex + s * ey, -s * ex + c * ey, b[:, 2] - a[:, 2]])
+    r = meas - displacement(model.step_velocities(log), np.ones(log.steps), log.dt)
+    r[:, 2] = wrap(r[:, 2])
+    return r
+
+
 def observation(poses_at_obs: np.ndarray, log: Log, model: Model) -> tuple[np.ndarray, np.ndarray]:
     """Reading and bearing residuals (measured minus predicted; NaN where not measured)."""
     lm = log.landmark_xy[log.landmark_index]

@@ -42,7 +42,7 @@ class Layout:
 def layout(log: Log, model: Model, stride: int = 1) -> Layout:
     """Knots every ``stride`` steps and at every action change (always at the first and last pose)."""
     T = log.steps
-    act = np.searchsorted(model.action_ids, log.action)
+    act = model.action.rows_of(log.action)
     change = np.flatnonzero(np.diff(act) != 0) + 1
     knots = np.unique(np.concatenate([np.arange(0, T + 1, stride), change, [T]]))
     seg_steps = np.diff(knots)

@@ -18,22 +18,10 @@ from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
 from casm_graph.models.effects import get as get_effect
-from casm_graph.report import command as command_report
 from casm_graph.report import pages as report
 from factors.reading import BASES
 
 SCASM_METHODS = scasm_run.METHODS             # 1-D logs: their own model kinds and report
-
-
-def _table_page(path: Path, log: Log, fit: Fit, cal: Calibration) -> None:
-    report.calibration(path, log, fit, fit.pose_std, read_truth_model(log.source), cal)
-
-
-def _command_page(path: Path, log: Log, fit: Fit, cal: Calibration) -> None:
-    command_report.calibration(path, log, fit, cal=cal)
-
-
-REPORTS = {"table": _table_page, "command_poly": _command_page}     # the report page of each kind of action model
 
 
 def check_request(options: CalibrateOptions) -> list:
@@ -77,9 +65,10 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
     part.check(log, options, classes)
     start = part.start_model(log, options.sensor_degree, start_basis(options))
     fit = part.calibrate(log, start, options, classes, progress)
-    page = REPORTS[part.name]
     return Calibration(log=log, model=fit.model, trajectory=trajectory_array(log.pose_times, fit.poses, fit.pose_std),
-                       options=options, fit=fit, write_report=lambda path, cal: page(path, log, fit, cal),
+                       options=options, fit=fit,
+                       write_report=lambda path, cal: report.calibration(path, log, fit, cal,
+                                                                         truth=read_truth_model(log.source)),
                        command=command)
 
 

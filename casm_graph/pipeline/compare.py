@@ -54,7 +54,7 @@ def compare(model: Model, sensor: dict | None, actions: dict | None) -> dict:
         meas = actions["v"][known]
         learned = model.velocity_of(ids)
         diff = learned - meas
-        std = model.velocity_std[np.searchsorted(model.action_ids, ids)] if model.velocity_std is not None else None
+        std = model.velocity_std[model.action.rows_of(ids)] if model.velocity_std is not None else None
         rms = np.sqrt(np.mean(diff ** 2, axis=0))
         out["actions"] = {"rms_difference": {"vx": rms[0], "vy": rms[1], "w": rms[2]},
                           "per_action": [{"action": int(a), "measured": m.tolist(), "learned": l.tolist(),

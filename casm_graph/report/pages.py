@@ -4,19 +4,25 @@ from __future__ import annotations
 import base64
 import html
 import io
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
+import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
 from casm_graph.analysis.correlation import strongest
 from casm_graph.analysis.predictive import words as predictive_words
-from casm_graph.fit import residuals
+from casm_graph.fit import continuous, residuals
 from casm_graph.fit.result import Fit
-from casm_graph.graph import table as G
 from casm_graph.io.log import Log
+from casm_graph.models.command_model import CommandModel
+from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
 from casm_graph.models.effects.surface_friction import SurfaceFriction
+from casm_graph.models.model import Model
+from casm_graph.models.velocity_table import VelocityTable
 from casm_graph.sim.aibo import true_reading
 
 STYLE = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -105,12 +111,45 @@ def friction_figure(fit: Fit):
     return fig
 
 
-def effect_panels(fit: Fit) -> list[str]:
-    """Report sections for the fitted effects that are better seen than read (the friction field on the floor)."""
+def regional_noise_figure(log: Log, fit: Fit, r_ref: float = 0.2, theta_ref: float = 0.1):
+    """The regional_motion_noise map: per region the translation and rotation sigma of a reference step
+    (``r_ref`` m, ``theta_ref`` rad) the fitted k's predict, the trajectory on top; undetermined regions grey."""
+    e = fit.model.effects["regional_motion_noise"]
+    regions, k = from_entry(e)
+    vr, vt = variances(k, r_ref, theta_ref)
+    x0, y0, x1, y1 = regions.extent
+    nx, ny = regions.grid
+    ok = determined(e)
+    fig, axs = subplots(1, 2, figsize=(12, 4.6))
+    for ax, v, unit, title in ((axs[0], 1000 * np.sqrt(vr), "mm", f"translation sigma of a {r_ref:g} m step"),
+                               (axs[1], 1000 * np.sqrt(vt), "mrad", f"rotation sigma of a {r_ref:g} m, {theta_ref:g} rad step")):
+        cmap = matplotlib.colormaps["viridis"].copy()
+        cmap.set_bad("0.85")
+        im = ax.imshow(np.where(ok, v, np.nan).reshape(ny, nx), origin="lower", extent=(x0, x1, y0, y1), cmap=cmap)
+        fig.colorbar(im, ax=ax, label=unit, shrink=0.8)
+        for g in range(regions.count):
+            cx, cy = x0 + (g % nx + 0.5) * (x1 - x0) / nx, y0 + (g // nx + 0.5) * (y1 - y0) / ny
+            ax.text(cx, cy, (f"{v[g]:.0f} {unit}" if ok[g] else "undetermined")
+                    + f"\n{e.get('segments', [0] * regions.count)[g]} segments", ha="center", va="center",
+                    fontsize=8, bbox={"facecolor": "w", "alpha": 0.7, "edgecolor": "none"})
+        ax.plot(fit.poses[:, 0], fit.poses[:, 1], color="C3", lw=0.5)
+        ax.plot(log.landmark_xy[:, 0], log.landmark_xy[:, 1], "k^", ms=6)
+        ax.set(title=title, xlabel="x (m)", ylabel="y (m)", xlim=(x0, x1), ylim=(y0, y1))
+        ax.set_aspect("equal")
+    fig.tight_layout()
+    return fig
+
+
+def effect_panels(log: Log, fit: Fit) -> list[str]:
+    """Report sections for the fitted effects that are better seen than read (the friction field on the floor, the
+    motion noise by region)."""
+    out = []
     e = fit.model.effects.get("surface_friction")
-    if not e or e.get("extent") is None:
-        return []
-    return ["<h2>Surface friction on the field</h2>", png(friction_figure(fit))]
+    if e and e.get("extent") is not None:
+        out += ["<h2>Surface friction on the field</h2>", png(friction_figure(fit))]
+    if "regional_motion_noise" in fit.model.effects:
+        out += ["<h2>Motion noise by region (regional_motion_noise)</h2>", png(regional_noise_figure(log, fit))]
+    return out
 
 
 def fit_quality(cal) -> str:
@@ -149,35 +188,45 @@ def fit_quality(cal) -> str:
 
 
 def residual_figure(log: Log, fit: Fit):
+    """Motion residuals per step (the action model's velocities, no effects) and the sightings' residuals through
+    the model's sensor effects; the distance from the truth when the log has it."""
     m = fit.model
-    lay = G.layout(log, m, 1)
-    mot = residuals.motion(fit.poses, lay, m)
-    r, b = residuals.observation(fit.poses[log.obs_step], log, m)
-    d = residuals.distances(fit.poses[log.obs_step], log)
-    fig, axs = subplots(2, 2, figsize=(10, 6))
+    mot = residuals.step_motion(fit.poses, log, m)
+    effects = [cls(log) for cls in fit.notes.get("hooked_effects", ())]
+    res = continuous.sighting_residuals(log, fit.poses[log.obs_step], m, effects)
+    r, b, d = res["reading"], res["bearing_residual"], res["distance"]
+    truth = log.truth is not None and len(log.truth) == len(fit.poses)
+    fig, axs = subplots(2, 3 if truth else 2, figsize=(14 if truth else 10, 6))
     t = log.t
     for i, (name, s) in enumerate([("forward (m)", 0), ("turn (rad)", 2)]):
         ax = axs[0, i]
-        ax.plot(t, mot[:, s], ",", alpha=0.4)
+        ax.plot(t, mot[:, s], ".", ms=1.5, alpha=0.4)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set(xlabel="time (s)", ylabel=name, title=f"motion residual: {name.split()[0]}")
+        ax.set(xlabel="time (s)", ylabel=name, title=f"motion residual per step: {name.split()[0]}")
     ax = axs[1, 0]
     if m.has("reading"):
         ax.plot(d, r, ".", ms=1, alpha=0.3)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.reading_sigma:.3g})")
+        ax.set(xlabel="distance (m)", ylabel="reading residual", title=f"reading residual (sigma {m.noise_text('reading', '.3g')})")
     else:
         absent(ax, "no readings in this log (a bearing-only sensor)")
     ax = axs[1, 1]
     bb = b[~np.isnan(b)]
     if len(bb) and m.has("bearing"):
-        ax.hist(bb, bins=60, density=True, alpha=0.6)
-        x = np.linspace(-np.pi, np.pi, 200)
-        s = m.bearing_sigma
-        ax.plot(x, np.exp(-0.5 * (x / s) ** 2) / (s * np.sqrt(2 * np.pi)), "C3")
-        ax.set(xlabel="bearing residual (rad)", title=f"bearing residual (sigma {s:.3g})")
+        sb = m.bearing_sigma
+        lim = min(max(5 * sb, float(np.percentile(np.abs(bb), 99))), np.pi)     # the model's bell, and the tails
+        ax.hist(np.clip(bb, -lim, lim), bins=60, range=(-lim, lim), density=True, alpha=0.6)
+        x = np.linspace(-lim, lim, 200)
+        ax.plot(x, np.exp(-0.5 * (x / sb) ** 2) / (sb * np.sqrt(2 * np.pi)), "C3", label="the model's noise")
+        ax.set(xlabel="bearing residual (rad; the 1 % beyond at the edges)", title=f"bearing residual (sigma {sb:.3g})")
+        ax.legend(fontsize=8)
     else:
         absent(ax, "no bearings in this log (a range-only sensor)")
+    if truth:
+        err = np.hypot(*(fit.poses[:, :2] - log.truth[:, 1:3]).T)
+        axs[0, 2].plot(log.pose_times, err, lw=0.6)
+        axs[0, 2].set(xlabel="time (s)", ylabel="position error (m)", title="distance from truth")
+        axs[1, 2].set_axis_off()
     fig.tight_layout()
     return fig
 
@@ -220,24 +269,86 @@ def velocity_table(fit: Fit, truth: dict | None) -> str:
     return summary + f"<table>{head}{''.join(rows)}</table>"
 
 
-def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | None, cal=None) -> None:
-    """report.html of a calibration run (``cal``, the Calibration, adds the opening table of fit quality)."""
+def maps_figure(log: Log, fit: Fit, reference=None):
+    """Learned forward-speed and turn-rate maps over the commands run (and a reference map, if given)."""
+    cm = fit.model.command
+    fig, axes = subplots(1, 2, figsize=(11, 4))
+    for ax, j, name, unit in ((axes[0], 0, "v", "m/s"), (axes[1], 1, "w", "rad/s")):
+        c = log.controls[:, j]
+        grid = np.linspace(c.min(), c.max(), 200)
+        ctl = np.zeros((len(grid), 2))
+        ctl[:, j] = grid
+        k = 0 if j == 0 else 2
+        ax.hist(c, bins=60, weights=log.dt, color="0.85", label="time at command (s, right axis)")
+        ax2 = ax.twinx()
+        ax2.plot(grid, grid, "k:", label="nominal (= command)")
+        ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned")
+        if reference is not None:
+            ax2.plot(grid, reference.velocities(ctl)[:, k], "C3--", lw=2, label="fitted against truth")
+        ax.set(xlabel=f"commanded {name} ({unit})", title=f"{'forward speed' if j == 0 else 'turn rate'} map")
+        ax2.set_ylabel(f"actual {name} ({unit})")
+        ax2.legend(loc="upper left", fontsize=8)
+        ax.yaxis.set_visible(False)
+    fig.tight_layout()
+    return fig
+
+
+def command_facts(m: Model) -> list[tuple]:
+    """The command maps' coefficients, for the page's table of the fit."""
+    cm = m.command
+    return [("speed map v(c)", ", ".join(f"{x:.4g}" for x in cm.v_coef) + f" (powers of c/{cm.scale[0]:.3g})"),
+            ("turn map w(c)", ", ".join(f"{x:.4g}" for x in cm.w_coef) + f" (powers of c/{cm.scale[1]:.3g})")]
+
+
+@dataclass(frozen=True)
+class ActionSection:
+    """How the calibration page shows one kind of action model: its rows in the table of the fit, the section's
+    title and its content (from the log, the fit, the simulator's truth model and a ground-truth evaluation)."""
+
+    facts: Callable[[Model], list]
+    title: str
+    show: Callable[[Log, Fit, dict | None, dict | None], str]
+
+
+SECTIONS = {VelocityTable.kind: ActionSection(lambda m: [], "Action table",
+                                              lambda log, fit, truth, ev: velocity_table(fit, truth)),
+            CommandModel.kind: ActionSection(command_facts, "Command maps", lambda log, fit, truth, ev: png(
+                maps_figure(log, fit, ev["_vicon_model"] if ev is not None else None)))}
+
+
+def calibration(path: Path, log: Log, fit: Fit, cal=None, truth: dict | None = None,
+                evaluation: dict | None = None) -> None:
+    """report.html of a calibration, any action model. ``cal`` (the Calibration) adds the opening table of fit
+    quality, ``truth`` (a simulator's truth_model.json) the true values, ``evaluation`` (from
+    :mod:`casm_graph.analysis.groundtruth`) the checks against a motion-capture truth."""
     m = fit.model
     f = m.fit
+    section = SECTIONS[m.action.kind]
     facts = [("method", f.get("method")), ("iterations", f.get("iterations")),
              ("seconds", f.get("seconds")), ("converged", f.get("converged")),
              ("log-likelihood", f"{f.get('log_likelihood', float('nan')):.1f}"),
              ("steps", log.steps), ("observations", len(log.obs_t)),
+             *([("sightings set aside", ", ".join(f"{k} {v}" for k, v in f["outliers_set_aside"].items())
+                 if isinstance(f["outliers_set_aside"], dict) else f["outliers_set_aside"])]
+               if "outliers_set_aside" in f else []),
+             *section.facts(m),
              ("reading sigma", m.noise_text("reading")), ("bearing sigma (rad)", m.noise_text("bearing")),
              ("motion noise per step", ", ".join(f"{x:.4g}" for x in m.motion_noise)),
              ("sensor polynomial", m.curve_text()),
              ("distance range (m)", f"{m.distance_range[0]:.2f} to {m.distance_range[1]:.2f}")]
     if truth is not None:
         sm = truth.get("sensor_model", {})
-        facts += [("true reading sigma", sm.get("reading_sigma")), ("true bearing sigma", sm.get("bearing_sigma"))]
+        facts += [(f"true {k.replace('_', ' ')}", sm[k]) for k in ("reading_sigma", "bearing_sigma") if k in sm]
         if "camera" in sm and m.has("reading"):
             d = np.linspace(*m.distance_range, 200)
             facts.append(("sensor curve RMS vs truth", f"{np.sqrt(np.mean((m.reading(d) - true_reading(truth, d)) ** 2)):.3f}"))
+    others = None
+    if evaluation is not None:
+        me, pr = evaluation["map_error"], evaluation["position_rms"]
+        facts += [("turn map RMS vs truth fit", f"{me['w']['rms']:.4f} rad/s ({100 * me['w']['fraction']:.1f} % of range)"),
+                  ("speed map RMS vs truth fit", f"{me['v']['rms']:.4f} m/s ({100 * me['v']['fraction']:.1f} % of range)")]
+        facts += [(f"position RMS: {k.replace('_', ' ')}", f"{v:.3f} m") for k, v in pr.items()]
+        others = {"identity-model graph": evaluation["_trajectories"]["identity_graph"]}
     info = "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>" for k, v in facts)
     warn = ""
     if fit.notes.get("marginals_ridge"):
@@ -247,12 +358,12 @@ def calibration(path: Path, log: Log, fit: Fit, std: np.ndarray, truth: dict | N
     if not f.get("converged", True):
         warn += "<p><b>Warning:</b> the optimiser stopped before converging; check the cost per iteration.</p>"
     body = [f"<h1>casm-graph calibration</h1>{warn}", fit_quality(cal) if cal is not None else "",
-            f"<h2>The fit</h2><table>{info}</table>", *effect_panels(fit),
+            f"<h2>The fit</h2><table>{info}</table>", *effect_panels(log, fit),
+            f"<h2>{section.title}</h2>", section.show(log, fit, truth, evaluation),
             "<h2>Sensor model</h2>", png(sensor_figure(log, fit, truth)),
-            "<h2>Cost per iteration</h2>", png(cost_figure(fit)),
-            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, std)),
+            "<h2>Trajectory</h2>", png(trajectory_figure(log, fit.poses, fit.pose_std, others)),
             "<h2>Residuals</h2>", png(residual_figure(log, fit)),
-            "<h2>Action table</h2>", velocity_table(fit, truth)]
+            "<h2>Cost per iteration</h2>", png(cost_figure(fit))]
     path.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>casm-graph calibration</title>"
                     f"<style>{STYLE}</style></head><body>{''.join(body)}</body></html>")
 

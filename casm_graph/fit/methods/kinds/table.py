@@ -44,7 +44,8 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     return Fit(model=model, poses=ef.poses, pose_std=pose_std, cost=fit.cost + ef.cost,
                stages=fit.stages + ["effects"] * len(ef.cost), iterations=fit.iterations + ef.iterations,
                converged=fit.converged, log_likelihood=ef.log_likelihood,
-               notes={**fit.notes, "base_log_likelihood": fit.log_likelihood})
+               notes={**fit.notes, "base_log_likelihood": fit.log_likelihood,
+                      "hooked_effects": [type(e) for e in ef.effects]})
 
 
 class TableKind(ActionKind):
