@@ -191,3 +191,18 @@ def test_calibrate_finds_a_lens(tmp_path):
                  "--quiet"]) == 0
     k = json.loads((tmp_path / "run" / "model.json").read_text())["effects"]["lens_distortion"]["k"]
     assert k == pytest.approx(-0.1, abs=0.03), k        # 2 minutes: -0.1014 (4-minute profiles: -0.098 to -0.102)
+
+
+def test_the_em_methods_take_effects_on_continuous_commands(tmp_path):
+    """As on action tables, effects start from the fit of the method asked for: on a continuous-command log of the
+    independent world, a second-order actuator lag made by its physics is found from EKFS-EM's fit as from the
+    graph's (the EM fit settled on the full graph before the lag's profile reads its poses)."""
+    from tests.worlds.independent_world import generate
+
+    truth = generate(tmp_path / "log", kind="continuous", minutes=2, seed=1, effect="actuator_lag")
+    log = cg.load_log(tmp_path / "log")
+    delay = 2 * truth["strength"]                     # two stages of the drawn time constant
+    graph = cg.calibrate(log, effects=["actuator_lag"]).model.effects["actuator_lag"]
+    em = cg.calibrate(log, method="ekfs-em", effects=["actuator_lag"]).model.effects["actuator_lag"]
+    assert em["order"] == graph["order"] == 2
+    assert abs(em["tau"] - graph["tau"]) < 0.01 and abs(em["tau"] - delay) < 0.2 * delay

@@ -638,8 +638,10 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
 
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
                      progress: Progress | None = None, marginals: bool = True,
-                     regions: RMN.Regions | None = None, options: CommandGraphOptions = DEFAULTS) -> Fit:
-    """``fit`` with effects (names, classes or instances): fit without them, then for each profiled effect in
+                     regions: RMN.Regions | None = None, options: CommandGraphOptions = DEFAULTS,
+                     base: Fit | None = None) -> Fit:
+    """``fit`` with effects (names, classes or instances): fit without them (or settle ``base``, a fit of ``start``
+    by another method, on the full graph: the EM methods' effects start from their own fit), then for each profiled effect in
     turn profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
     profiled: its regions (``regions``, default a 3 x 2 grid around the landmarks) start from the
     latest fit's noise levels and the noise step of every round of one more fit sets their k's. Every other
@@ -654,7 +656,10 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     profiled = [n for n in named if n in EFFECTS]
     noisy = [n for n in named if n in NOISE_EFFECTS]
     hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
-    out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options)
+    if base is None:
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options)
+    else:                    # settled on the full graph first: a profile reads the poses it starts from
+        out = fit_hooked(log, base, [], seed=seed, progress=progress, marginals=False, options=options)
     warm = {}
     if hooked and (profiled or noisy):
         first = fit_hooked(log, out, hooked, seed=seed, progress=progress, marginals=False, options=options)

@@ -1,11 +1,11 @@
 """Calibrating a command map (continuous ``v,w`` commands): a zero map, the window start at the nominal map, the
-coarse knots of :mod:`casm_graph.fit.continuous`; effects (profiled, regional noise, hooked) by the graph method."""
+coarse knots of :mod:`casm_graph.fit.continuous`; effects (profiled, regional noise, hooked) fitted on the graph,
+from the fit of the method asked for, as an action table's are."""
 from __future__ import annotations
 
 from casm_graph.fit import continuous
 from casm_graph.fit.methods.base import METHODS
 from casm_graph.fit.methods.kinds.base import ActionKind
-from casm_graph.io.log import LogError
 from casm_graph.models.command_model import KIND
 from casm_graph.models.effects.regional_motion_noise import Regions
 
@@ -24,15 +24,16 @@ class CommandKind(ActionKind):
 
     def check(self, log, options, classes):
         continuous.check_effects(options.effects, log)
-        if classes and options.method != "graph":
-            raise LogError(f"--method {options.method}: effects on continuous commands are fitted by the graph method")
         Regions.parse(options.regions, log)
 
     def calibrate(self, log, start, options, classes, progress=None):
+        base = None
         if options.method != "graph":
-            return METHODS[options.method](log, start, seed=options.seed, progress=progress)
+            base = METHODS[options.method](log, start, seed=options.seed, progress=progress)
+            if not classes:
+                return base
         if classes:
             return continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
                                                progress=progress, regions=Regions.parse(options.regions, log),
-                                               options=options.command_graph)
+                                               options=options.command_graph, base=base)
         return continuous.fit(log, start, seed=options.seed, progress=progress, options=options.command_graph)
