@@ -14,7 +14,7 @@ from casm_graph.graph import table as G
 from casm_graph.graph.actions import ACTIONS, default_layout
 from casm_graph.graph.problem import Problem
 from casm_graph.models.command_model import for_commands
-from casm_graph.models.model import paper_start
+from casm_graph.models.model import ACTION_MODELS, paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 from casm_graph.sim.floor import FloorConfig
 from casm_graph.sim.floor import simulate as simulate_floor
@@ -125,7 +125,7 @@ def test_each_kind_of_action_model_has_its_calibration_part(true_case):
     floor_log, _ = simulate_floor(FloorConfig(minutes=2, seed=1))
     floor = m.with_action(for_commands(floor_log.controls, 2, 1, gain=1.0).with_params(
         np.array([0.01, 0.9, -0.05, 0.02, 1.1])))
-    assert set(KINDS) == set(ACTIONS) == set(BENCHES)
+    assert set(KINDS) == set(ACTIONS) == set(BENCHES) == set(ACTION_MODELS)
     for lg, model in ((log, m), (floor_log, floor)):
         part = kind(lg.action_model_kind)
         start = part.start_model(lg, 3)
@@ -135,6 +135,10 @@ def test_each_kind_of_action_model_has_its_calibration_part(true_case):
         assert np.array_equal(lay.knots, np.arange(lg.steps + 1))
         assert np.allclose(seen.velocities[lay.seg_action], model.step_velocities(lg))
     assert set(m.action.std_json()) == {"velocity_std"} and set(floor.action.std_json()) == {"command_std"}
+    for model in (m, floor):       # the figures a fleet's drift follows, read from model.json by the part
+        am = model.action.to_json()
+        figures = ACTION_MODELS[am["kind"]].figures(am)
+        assert len(figures) == len(model.action.params) and all(np.isfinite(v) for _, _, v, _ in figures)
 
 
 def test_a_model_is_made_ready_for_a_log_or_says_why(true_case):

@@ -40,6 +40,8 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.stats import norm
 
+from casm_graph.models.model import ACTION_MODELS
+from casm_graph.models.velocity_table import AXES
 from factors.reading import BASES, features
 
 Z = 3.0                 # sigmas a change must exceed
@@ -49,7 +51,6 @@ OUTLIER = 4.0           # sigmas off the common scale: a figure left out of the 
 MAX_OUTLIERS = 0.2      # at most this share of the figures left out
 FLAGGED_FAMILIES = ("velocities", "command_map", "sensor", "effects")
 SCALE_FAMILIES = ("velocities", "command_map", "sensor")
-AXES = ("vx", "vy", "w")
 
 
 @dataclass
@@ -118,20 +119,6 @@ def _num(x) -> float:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else math.nan
 
 
-def command_coefficients(am: dict) -> dict[str, tuple[list, list]]:
-    """A command map's coefficients and std per command in the command's own units: model.json's divided
-    by ``scale``^i (each log scales by its own largest command, so only these compare across logs)."""
-    out = {}
-    std, scale = am.get("std") or {}, am.get("scale") or {}
-    for c, coef in (am.get("coefficients") or {}).items():
-        s = _num(scale.get(c, 1.0)) if isinstance(scale, dict) else 1.0
-        s = s if math.isfinite(s) and s > 0 else 1.0
-        sd = (std.get(c) if isinstance(std, dict) else None) or [None] * len(coef)
-        out[c] = ([_num(v) / s ** i for i, v in enumerate(coef)],
-                  [(_num(sd[i]) if i < len(sd) else math.nan) / s ** i for i in range(len(coef))])
-    return out
-
-
 def parameters(model: dict) -> dict[str, dict]:
     """name -> {"family", "value", "std"} for every figure of one model.json (std NaN where unknown)."""
     out: dict[str, dict] = {}
@@ -140,16 +127,9 @@ def parameters(model: dict) -> dict[str, dict]:
         out[name] = {"family": family, "value": _num(value), "std": _num(std)}
 
     am = model.get("action_model", {}) or {}
-    if am.get("kind") == "table":
-        vel, std = am.get("velocities", {}) or {}, am.get("std", {}) or {}
-        for a in sorted(vel, key=lambda s: int(s)):
-            sd = std.get(a) or [None] * 3
-            for i, ax in enumerate(AXES):
-                put(f"action {a} {ax}", "velocities", vel[a][i], sd[i] if i < len(sd) else None)
-    elif isinstance(am.get("coefficients"), dict):
-        for c, (coef, sd) in command_coefficients(am).items():
-            for i, (v, e) in enumerate(zip(coef, sd)):
-                put(f"{c} coef {i}", "command_map", v, e)
+    part = ACTION_MODELS.get(am.get("kind"))
+    for name, family, value, std in part.figures(am) if part is not None else ():
+        put(name, family, value, std)
     sm = model.get("sensor_model", {}) or {}
     poly = sm.get("reading_poly") or []
     psd = sm.get("reading_poly_std") or [None] * len(poly)

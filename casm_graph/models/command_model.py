@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from casm_graph.io.log import LogError
-from casm_graph.models.velocity_table import VelocityTable
+from casm_graph.models.velocity_table import VelocityTable, json_number
 
 KIND = "command_poly"
 
@@ -167,6 +167,36 @@ class CommandModel:
                 "command_range": {"v": [float(x) for x in self.command_range[0]],
                                   "w": [float(x) for x in self.command_range[1]]},
                 "lag": float(self.lag), "lag_order": int(self.lag_order)}
+
+    @staticmethod
+    def coefficients_in_units(am: dict) -> dict[str, tuple[list, list]]:
+        """A command map's coefficients and std per command in the command's own units: model.json's divided by
+        ``scale``^i (each log scales by its own largest command, so only these compare across logs)."""
+        out = {}
+        coefficients = am.get("coefficients")
+        if not isinstance(coefficients, dict):
+            return out
+        std, scale = am.get("std") or {}, am.get("scale") or {}
+        for c, coef in coefficients.items():
+            s = json_number(scale.get(c, 1.0)) if isinstance(scale, dict) else 1.0
+            s = s if np.isfinite(s) and s > 0 else 1.0
+            sd = (std.get(c) if isinstance(std, dict) else None) or [None] * len(coef)
+            out[c] = ([json_number(v) / s ** i for i, v in enumerate(coef)],
+                      [(json_number(sd[i]) if i < len(sd) else np.nan) / s ** i for i in range(len(coef))])
+        return out
+
+    @staticmethod
+    def figures(am: dict) -> list[tuple[str, str, float, float]]:
+        """(name, family, value, std) of every figure of a command map's model.json entry ``am``: its coefficients
+        in the command's own units."""
+        return [(f"{c} coef {i}", "command_map", v, e) for c, (coef, sd) in CommandModel.coefficients_in_units(am).items()
+                for i, (v, e) in enumerate(zip(coef, sd))]
+
+    @staticmethod
+    def brief(am: dict) -> dict:
+        """A command map's model.json entry in brief, for a fleet's table: its coefficients in the command's units."""
+        return {f"{c}_coef_{i}": v for c, (coef, _) in CommandModel.coefficients_in_units(am).items()
+                for i, v in enumerate(coef)}
 
     @classmethod
     def from_json(cls, am: dict) -> "CommandModel":

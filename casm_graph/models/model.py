@@ -12,9 +12,12 @@ import numpy as np
 from casm_graph.io.log import Log, LogError
 from factors.reading import BASES, curve, features
 from casm_graph.io.output import strict
+from casm_graph.models.command_model import CommandModel
+from casm_graph.models.effects import REGISTRY
 from casm_graph.models.velocity_table import VelocityTable
 
 SCHEMA = "casm-graph/model/1"
+ACTION_MODELS = {part.kind: part for part in (VelocityTable, CommandModel)}   # by model.json's action_model.kind
 
 # The EKFS-EM paper's start: zero velocities, a poor linear sensor model, wide sigmas.
 PAPER_START_READING_SIGMA = 10.0
@@ -287,7 +290,6 @@ def _action_ids(w: _Where, keys, where: str) -> list[tuple[int, str]]:
 
 
 def _command_model(w: _Where, am: dict):
-    from casm_graph.models.command_model import CommandModel
     scale = w.obj(am.get("scale"), "action_model.scale")
     coef = w.obj(am.get("coefficients"), "action_model.coefficients")
     std = w.obj(am.get("std") or {}, "action_model.std")
@@ -307,7 +309,6 @@ def _command_model(w: _Where, am: dict):
 
 
 def _effects(w: _Where, effects) -> dict:
-    from casm_graph.models.effects import REGISTRY
     w.obj(effects, "effects")
     for name, entry in effects.items():
         w.obj(entry, f"effects.{name}")

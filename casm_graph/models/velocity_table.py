@@ -6,11 +6,20 @@ code above the action model never asks which kind a log has.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from casm_graph.io.log import LogError
+
+
+AXES = ("vx", "vy", "w")
+
+
+def json_number(x) -> float:
+    """A model.json figure as a float, NaN where it is missing, not a number or not finite (a fleet's files vary)."""
+    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else math.nan
 
 KIND = "table"
 
@@ -92,6 +101,26 @@ class VelocityTable:
         """The :class:`casm_graph.models.model.Model` fields that hold this action model."""
         return {"action_ids": self.action_ids, "velocities": self.velocities, "velocity_std": self.velocity_std,
                 "command": None}
+
+    @staticmethod
+    def figures(am: dict) -> list[tuple[str, str, float, float]]:
+        """(name, family, value, std) of every figure of a table's model.json entry ``am``, read as a fleet's files
+        come (missing std NaN): each action's vx, vy, w."""
+        vel, std = am.get("velocities", {}) or {}, am.get("std", {}) or {}
+        out = []
+        for a in sorted(vel, key=lambda s: int(s)):
+            sd = std.get(a) or [None] * 3
+            out += [(f"action {a} {ax}", "velocities", json_number(vel[a][i]),
+                     json_number(sd[i] if i < len(sd) else None)) for i, ax in enumerate(AXES)]
+        return out
+
+    @staticmethod
+    def brief(am: dict) -> dict:
+        """A table's model.json entry in brief, for a fleet's table: its size and mean absolute velocity per axis."""
+        vel = np.array([[json_number(v) for v in vs] for vs in (am.get("velocities") or {}).values()],
+                       float).reshape(-1, 3)
+        mean = np.nanmean(np.abs(vel), axis=0) if len(vel) else np.full(3, np.nan)
+        return {"actions": len(vel), **{f"mean_abs_{ax}": float(v) for ax, v in zip(AXES, mean)}}
 
     def to_json(self) -> dict:
         ids = [str(int(a)) for a in self.action_ids]

@@ -46,7 +46,6 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from distributed import Client, LocalCluster, as_completed
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
@@ -56,6 +55,7 @@ from casm_graph.io.log import LogError
 from casm_graph.io.log import load as load_log
 from casm_graph.io.output import checked_out, json_text
 from casm_graph.models.effects import catalog
+from casm_graph.models.model import ACTION_MODELS
 from casm_graph.pipeline.calibrate import calibrate
 from casm_graph.report import fleet as fleet_report
 from casm_graph.sim.fleet import simulate_fleet
@@ -215,16 +215,9 @@ def model_row(model: dict) -> dict:
     command's own units, ``v_coef_i`` = model.json's ``coefficients.v[i] / scale.v**i``)."""
     am, sm, fit = model.get("action_model", {}) or {}, model.get("sensor_model", {}) or {}, model.get("fit", {}) or {}
     row = {"kind": am.get("kind"), "method": fit.get("method")}
-    if am.get("kind") == "table":
-        vel = np.array([[np.nan if v is None else v for v in vs] for vs in (am.get("velocities") or {}).values()],
-                       float).reshape(-1, 3)
-        row["actions"] = len(vel)
-        for ax, v in zip(driftmod.AXES, np.nanmean(np.abs(vel), axis=0) if len(vel) else [None] * 3):
-            row[f"mean_abs_{ax}"] = _f(v)
-    elif isinstance(am.get("coefficients"), dict):      # in the command's units: comparable across logs
-        for c, (coef, _) in driftmod.command_coefficients(am).items():
-            for i, v in enumerate(coef):
-                row[f"{c}_coef_{i}"] = _f(v)
+    part = ACTION_MODELS.get(am.get("kind"))
+    for k, v in (part.brief(am) if part is not None else {}).items():
+        row[k] = v if isinstance(v, int) else _f(v)
     row["reading_sigma"] = _f(sm.get("reading_sigma"))
     row["bearing_sigma"] = _f(sm.get("bearing_sigma"))
     for ax, v in zip(("x", "y", "theta"), model.get("motion_noise") or []):
