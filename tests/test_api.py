@@ -19,6 +19,7 @@ import pytest
 import casm_graph as cg
 from casm_graph.cli import main
 from casm_graph.fit import continuous
+from casm_graph.fit.residuals import sighting_residuals
 from casm_graph.models.model import Model
 from casm_graph.sim.aibo import SimConfig, simulate, write
 
@@ -255,9 +256,9 @@ def test_one_calibration_page_for_every_kind_of_action_model(cal, tmp_path):
     assert heads["table"].index("Action table") == heads["floor"].index("Command maps") == common.index("Sensor model")
     lens = cg.calibrate(cal.log, effects=["lens_distortion"])
     poses = lens.fit.poses[cal.log.obs_step]
-    through = continuous.sighting_residuals(cal.log, poses, lens.model,
+    through = sighting_residuals(cal.log, poses, lens.model,
                                             [k(cal.log) for k in lens.fit.notes["hooked_effects"]])["reading"]
-    plain = continuous.sighting_residuals(cal.log, poses, lens.model)["reading"]
+    plain = sighting_residuals(cal.log, poses, lens.model)["reading"]
     assert [k.name for k in lens.fit.notes["hooked_effects"]] == ["lens_distortion"]
     assert np.nanmax(np.abs(through - plain)) > 0
 

@@ -25,14 +25,14 @@ from gtsam.symbol_shorthand import X
 
 from casm_graph.fit import turns
 from casm_graph.fit import windows as W
+from casm_graph.fit.residuals import sighting_residuals
 from casm_graph.fit.result import Fit, Progress
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.graph import augmented, robust
 from casm_graph.graph import table as G
-from casm_graph.graph.actions.base import sighting_means, velocity_window
 from casm_graph.graph.actions.command_poly import Layout, layout
 from casm_graph.graph.problem import THETA, Problem, State
-from casm_graph.io.log import Log, LogError, wrap
+from casm_graph.io.log import Log, LogError
 from casm_graph.models.command_model import for_commands
 from casm_graph.models.effects import of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
@@ -108,26 +108,6 @@ def options_of(model: Model) -> CommandGraphOptions:
                            f"{'positive' if spacing else 'non-negative'} number (got {v!r})")
         known[k] = type(getattr(DEFAULTS, k))(v)
     return replace(DEFAULTS, **known)
-
-
-def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects=()) -> dict:
-    """Per sighting: distance and bearing from its pose, and the reading and bearing residuals
-    (measured minus predicted, in the sensor's units; NaN where not measured), through the sensor
-    hooks of ``effects`` (their parameters from ``model.effects``) when there are any."""
-    rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
-    d = np.hypot(rel[:, 0], rel[:, 1])
-    bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
-    sensor = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.channel == "sensor"]
-    if sensor:
-        ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan,
-               "velocity": sighting_means(log, model.step_velocities(log), velocity_window(model, effects))}
-        fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index], model.reading_basis)
-        pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
-                        np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
-        return {"distance": d, "bearing": bearing, "reading": log.obs_reading - pred,
-                "bearing_residual": wrap(log.obs_bearing - b)}
-    return {"distance": d, "bearing": bearing, "reading": log.obs_reading - model.reading(d),
-            "bearing_residual": wrap(log.obs_bearing - bearing)}
 
 
 def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GATE,

@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from casm_graph.graph import chain
+from casm_graph.graph import augmented, chain
+from casm_graph.graph.actions.base import sighting_means, velocity_window
 from casm_graph.graph.actions.command_poly import COMMAND_CHANGE
 from casm_graph.graph.problem import Problem, State
 from casm_graph.graph.table import Layout
@@ -63,14 +64,30 @@ def step_motion(poses: np.ndarray, log: Log, model: Model) -> np.ndarray:
     return r
 
 
-def observation(poses_at_obs: np.ndarray, log: Log, model: Model) -> tuple[np.ndarray, np.ndarray]:
-    """Reading and bearing residuals (measured minus predicted; NaN where not measured)."""
-    lm = log.landmark_xy[log.landmark_index]
-    rel = lm - poses_at_obs[:, :2]
+def sighting_residuals(log: Log, poses_at_obs: np.ndarray, model: Model, effects=()) -> dict:
+    """Per sighting: distance and bearing from its pose, and the reading and bearing residuals
+    (measured minus predicted, in the sensor's units; NaN where not measured), through the sensor
+    hooks of ``effects`` (their parameters from ``model.effects``) when there are any."""
+    rel = log.landmark_xy[log.landmark_index] - poses_at_obs[:, :2]
     d = np.hypot(rel[:, 0], rel[:, 1])
-    reading = log.obs_reading - model.reading(d)
-    bearing = wrap(log.obs_bearing - (np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2]))
-    return reading, bearing
+    bearing = wrap(np.arctan2(rel[:, 1], rel[:, 0]) - poses_at_obs[:, 2])
+    sensor = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.channel == "sensor"]
+    if sensor:
+        ctx = {"t": log.obs_t - log.pose_times[0], "landmark": log.landmark_index, "pan": log.camera_pan,
+               "velocity": sighting_means(log, model.step_velocities(log), velocity_window(model, effects))}
+        fn = augmented.sensor_function(sensor, ctx, log.landmark_xy[log.landmark_index], model.reading_basis)
+        pred, b, _ = fn(augmented.theta_from_model(list(effects), model), poses_at_obs,
+                        np.asarray(model.reading_poly, float), np.arange(len(log.obs_t)))
+        return {"distance": d, "bearing": bearing, "reading": log.obs_reading - pred,
+                "bearing_residual": wrap(log.obs_bearing - b)}
+    return {"distance": d, "bearing": bearing, "reading": log.obs_reading - model.reading(d),
+            "bearing_residual": wrap(log.obs_bearing - bearing)}
+
+
+def observation(poses_at_obs: np.ndarray, log: Log, model: Model, effects=()) -> tuple[np.ndarray, np.ndarray]:
+    """Reading and bearing residuals (measured minus predicted; NaN where not measured): from :func:`sighting_residuals`."""
+    res = sighting_residuals(log, poses_at_obs, model, effects)
+    return res["reading"], res["bearing_residual"]
 
 
 def distances(poses_at_obs: np.ndarray, log: Log) -> np.ndarray:

@@ -15,7 +15,7 @@ from matplotlib.patches import Ellipse
 
 from casm_graph.analysis.correlation import strongest
 from casm_graph.analysis.predictive import words as predictive_words
-from casm_graph.fit import continuous, residuals
+from casm_graph.fit import residuals
 from casm_graph.fit.result import Fit
 from casm_graph.io.log import Log
 from casm_graph.models.command_model import CommandModel
@@ -156,7 +156,8 @@ def fit_quality(cal) -> str:
     """The page's opening: how good the fit is, in units; the effects and their values; the run's record."""
     m, log, tr = cal.model, cal.log, cal.trajectory
     poses = np.column_stack([tr["x"], tr["y"], tr["theta"]])
-    r, b = residuals.observation(poses[log.obs_step], log, m)
+    hooked = cal.fit.notes.get("hooked_effects", ()) if cal.fit is not None else ()
+    r, b = residuals.observation(poses[log.obs_step], log, m, [k(log) for k in hooked])   # through its sensor effects
     rows = []
     if m.action.std_summary() is not None:
         rows.append(m.action.std_summary())
@@ -193,7 +194,7 @@ def residual_figure(log: Log, fit: Fit):
     m = fit.model
     mot = residuals.step_motion(fit.poses, log, m)
     effects = [cls(log) for cls in fit.notes.get("hooked_effects", ())]
-    res = continuous.sighting_residuals(log, fit.poses[log.obs_step], m, effects)
+    res = residuals.sighting_residuals(log, fit.poses[log.obs_step], m, effects)
     r, b, d = res["reading"], res["bearing_residual"], res["distance"]
     truth = log.truth is not None and len(log.truth) == len(fit.poses)
     fig, axs = subplots(2, 3 if truth else 2, figsize=(14 if truth else 10, 6))

@@ -18,6 +18,7 @@ from casm_graph.analysis.candidates.base import Bench
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, best_of_family, chosen_candidates,
                                            family_members, folds, predicted_sightings)
 from casm_graph.fit import continuous as CT
+from casm_graph.fit.residuals import sighting_residuals
 from casm_graph.fit.result import Fit
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
@@ -74,7 +75,7 @@ def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, ef
     evidence), the base's sigmas held; an effect that scales the readings' sigma on the readings the gate kept
     (``use``), the reading sigma concentrated out of both. A refit of the poses would let them trade motion
     residuals for sighting residuals, which confounds the comparison of two noise models (BENCHMARKS.md)."""
-    res = CT.sighting_residuals(log, poses[log.obs_step], model, effects)
+    res = sighting_residuals(log, poses[log.obs_step], model, effects)
     noisy = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.noise_only]
     scale = augmented.reading_scale(noisy, augmented.theta_from_model(list(effects), model), res["distance"])
     rr, rb, d = res["reading"], res["bearing_residual"], res["distance"]
