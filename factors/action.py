@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import register, wrap
+from .base import register, relative, wrap
 
 
 def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray):
@@ -36,17 +36,7 @@ def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray):
 @register("action", ("pose", "pose", "vector"))
 def error(a: np.ndarray, b: np.ndarray, v: np.ndarray, k: np.ndarray, dt: np.ndarray):
     """Body-frame displacement from pose a to pose b minus the velocity v held for k steps of dt."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    dx, dy = c * ex + s * ey, -s * ex + c * ey
+    rel, Ha, Hb = relative(a, b)
     pred, Jv = displacement(v, k, dt)
-    e = np.column_stack([dx - pred[:, 0], dy - pred[:, 1], wrap(b[:, 2] - a[:, 2] - pred[:, 2])])
-    n = len(a)
-    Ha = np.zeros((n, 3, 3))
-    Ha[:, 0, 0] = Ha[:, 1, 1] = Ha[:, 2, 2] = -1.0
-    Ha[:, 0, 2], Ha[:, 1, 2] = dy, -dx
-    rel = b[:, 2] - a[:, 2]
-    cr, sr = np.cos(rel), np.sin(rel)
-    Hb = np.zeros((n, 3, 3))
-    Hb[:, 0, 0], Hb[:, 0, 1], Hb[:, 1, 0], Hb[:, 1, 1], Hb[:, 2, 2] = cr, -sr, sr, cr, 1.0
+    e = np.column_stack([rel[:, 0] - pred[:, 0], rel[:, 1] - pred[:, 1], wrap(rel[:, 2] - pred[:, 2])])
     return e, [Ha, Hb, -Jv]

@@ -67,6 +67,22 @@ def wrap(a):
     return np.where(w == -np.pi, np.pi, w)
 
 
+def relative(a: np.ndarray, b: np.ndarray):
+    """Body-frame displacement of pose b from pose a, with its derivatives in GTSAM tangent space."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    dx, dy = c * ex + s * ey, -s * ex + c * ey
+    n = len(a)
+    Ha = np.zeros((n, 3, 3))
+    Ha[:, 0, 0] = Ha[:, 1, 1] = Ha[:, 2, 2] = -1.0
+    Ha[:, 0, 2], Ha[:, 1, 2] = dy, -dx
+    rel = b[:, 2] - a[:, 2]
+    cr, sr = np.cos(rel), np.sin(rel)
+    Hb = np.zeros((n, 3, 3))
+    Hb[:, 0, 0], Hb[:, 0, 1], Hb[:, 1, 0], Hb[:, 1, 1], Hb[:, 2, 2] = cr, -sr, sr, cr, 1.0
+    return np.column_stack([dx, dy, rel]), Ha, Hb
+
+
 def pose_jacobian(gx, gy, cos_th, sin_th) -> np.ndarray:
     """(n, 2) derivative of a function of world position with gradient (gx, gy) w.r.t. a body-frame step."""
     return np.stack([gx * cos_th + gy * sin_th, -gx * sin_th + gy * cos_th], axis=-1)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import register, wrap
+from .base import register, relative, wrap
 
 
 def displacement(p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray):
@@ -49,22 +49,6 @@ def integrate(v: np.ndarray, dt: np.ndarray) -> np.ndarray:
     x, y = np.cumsum(dx, axis=1), np.cumsum(dy, axis=1)
     starts = np.stack([x - dx, y - dy, phi], axis=-1)
     return np.column_stack([x[:, -1], y[:, -1], phi[:, -1] + turn[:, -1]]), starts
-
-
-def relative(a: np.ndarray, b: np.ndarray):
-    """Body-frame displacement of pose b from pose a, with its derivatives in GTSAM tangent space."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    dx, dy = c * ex + s * ey, -s * ex + c * ey
-    n = len(a)
-    Ha = np.zeros((n, 3, 3))
-    Ha[:, 0, 0] = Ha[:, 1, 1] = Ha[:, 2, 2] = -1.0
-    Ha[:, 0, 2], Ha[:, 1, 2] = dy, -dx
-    rel = b[:, 2] - a[:, 2]
-    cr, sr = np.cos(rel), np.sin(rel)
-    Hb = np.zeros((n, 3, 3))
-    Hb[:, 0, 0], Hb[:, 0, 1], Hb[:, 1, 0], Hb[:, 1, 1], Hb[:, 2, 2] = cr, -sr, sr, cr, 1.0
-    return np.column_stack([dx, dy, rel]), Ha, Hb
 
 
 @register("command", ("pose", "pose", "vector"))

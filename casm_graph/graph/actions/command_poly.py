@@ -212,7 +212,7 @@ class CommandPoly(ActionPart):
         if not self.motion_effects:
             e, (Ha, Hb, Hx) = factors.command.error(P[:-1], P[1:], x, self.Bv, self.Bw, self.lay.seg_dt)
             return e, [Ha, Hb], (Hx if parameters else None), None
-        rel, Ha, Hb = factors.command.relative(P[:-1], P[1:])
+        rel, Ha, Hb = factors.base.relative(P[:-1], P[1:])
         d = self._segment_motion(x, theta, P[:-1])
         e = np.column_stack([rel[:, :2] - d[:, :2], wrap(rel[:, 2] - d[:, 2])])
         if not jacobians:
