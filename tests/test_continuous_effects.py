@@ -111,6 +111,7 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     assert lag["parameters"]["tau"] == pytest.approx(TRUE_LAG, rel=0.25)
     assert "order" not in lag["parameters"]                  # a one-stage lag keeps the family's first member
     assert lag["heldout_nll_drop"] is None and "continuous" in lag["heldout_skipped"]
+    assert "nan" not in " ".join(diag["summary"])            # an unmeasured held-out score is said so, not printed
     false = next(c for c in diag["candidates"] if c["effect"] == "false_detections")
     assert false["delta_bic"] > 0 and false["heldout_nll_drop"] is not None     # scored on folds; none to find
     pred = diag["predictive"]                                # open-loop error grows with the horizon

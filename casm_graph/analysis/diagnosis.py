@@ -437,8 +437,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
         else:
             s = next(s for s in strong if (s["channel"], s["name"]) in tuple(explains.get(best.effect, ())))
             rank = "the strongest" if s is structure[0] else "a strong"
-            second = (f"accounts for {rank} residual structure ({s['channel']} residuals against {s['name']}), "
-                      f"though the held-out score does not improve ({best.heldout_nll_drop:.1f} nats)")
+            held = (f"though the held-out score does not improve ({best.heldout_nll_drop:.1f} nats)"
+                    if np.isfinite(best.heldout_nll_drop) else f"its held-out score not measured ({best.heldout_skipped})")
+            second = f"accounts for {rank} residual structure ({s['channel']} residuals against {s['name']}), {held}"
         words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
                      f"and {second}. {best.explanation}")
         if len(tied) > 1:
