@@ -75,6 +75,12 @@ class DiagnoseOptions:
     #                                    seed 3: -2,158 against the lag's -2,053; with two -1,820 against -1,912, its
     #                                    look-alike), but cost 1.16x the diagnosis (Aibo lag10: about 3.0x calibrate)
     candidate_iterations: int = 8      # and LM iterations per round
+    leader_rounds: int = 3             # action tables: when two or more candidates lead (supported by BIC, each with at
+    #                                    least ``lookalike_gain`` of the best's delta BIC), they and the base go on from
+    #                                    their fits to this many rounds in all before the held-out folds: the independent
+    #                                    world's table latencies are named 10 of 10 (8 with two), at 1.06x the diagnosis
+    #                                    on Aibo lag10, where lag and latency lead (every candidate in three rounds: 1.16x;
+    #                                    0 or <= candidate_rounds: never)
     folds: int = 3                     # time-blocked held-out folds
     fold_iterations: int = 4           # LM iterations bounding each fold's fits
     fold_tol: float = 1e-5             # relative cost change that ends a fold fit (about 0.1 nat on these logs)

@@ -9,6 +9,7 @@ import os
 import pickle
 import signal
 import time
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -69,8 +70,9 @@ def _resolve(extra):
 
 
 def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.EffectFit", extra,
-                  options: DiagnoseOptions = DEFAULTS, floor: float | None = None):
-    """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it).
+                  options: DiagnoseOptions = DEFAULTS, floor: float | None = None, start: tuple | None = None):
+    """Fit the refitted model plus ``extra``; delta BIC against ``base`` (the same procedure without it). ``start``:
+    (model, poses) to go on from instead (a leader's own fit, for more rounds).
 
     Returns the candidate (held-out score still to come) and the fitted model and poses. With ``floor`` (the
     base's :func:`~casm_graph.analysis.score_test.predicted_floor`) a candidate whose score-test gain is below
@@ -85,7 +87,8 @@ def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.Eff
     if gain is not None and 2.0 * gain < options.screen_share * penalty:
         return Candidate(eff.name, eff.channel, float(penalty - 2.0 * gain), float("nan"), eff.physics, gain,
                          {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True), None, None
-    f = effect_fit.fit(log, refit.model, refit.poses, refit.effects + [eff], rounds=options.candidate_rounds,
+    model, poses = start if start is not None else (refit.model, refit.poses)
+    f = effect_fit.fit(log, model, poses, refit.effects + [eff], rounds=options.candidate_rounds,
                        iterations=options.candidate_iterations)
     dll = f.log_likelihood - base.log_likelihood
     dbic = -2.0 * dll + penalty
@@ -212,7 +215,7 @@ class TableBench(Bench):
         if progress is not None:
             progress.stage("refit model", None)
         self.present_names = set(model.effects)
-        present = of_model(model.effects, extra_effects)
+        self.present = present = of_model(model.effects, extra_effects)
         self.fit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds,
                                   iterations=o.candidate_iterations)
         # the reference every candidate is scored against: the same warm-started procedure, nothing added
@@ -239,6 +242,7 @@ class TableBench(Bench):
                            progress, self.client)
         keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
         fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
+        self.settle_leaders(fitted, members)
         cands = [c for c, _, _ in fitted]
         explains = {cls.name: cls.explains for cls in self.pool}
         heldout_rounds(log, self.base, fitted, members, built_for(strong_structures(structure, o), explains),
@@ -246,6 +250,35 @@ class TableBench(Bench):
         cands.sort(key=lambda c: (c.delta_bic, -c.heldout_nll_drop))
         self.base_prediction = predicted_sightings(self.base.problem, self.base.state)
         return cands, skipped, explains, {cls.name: cls.distinguished_by for cls in self.pool}
+
+    def settle_leaders(self, fitted: list, members: list) -> None:
+        """When two or more fitted candidates lead (delta BIC at most ``bic_support`` and at least ``lookalike_gain``
+        of the best's), they and the base go on from their fits to ``options.leader_rounds`` rounds in all and the
+        leaders are scored against that base (``fitted`` updated in place; the base, and what the proposal is scored
+        against, becomes it). An effect whose optimum lies away from the base's poses (a camera latency: the poses
+        must move back) needs more rounds to reach it than a look-alike whose optimum is near (an actuator lag)."""
+        o = self.options
+        done = [i for i, (c, m, _) in enumerate(fitted) if m is not None]
+        if o.leader_rounds <= o.candidate_rounds or len(done) < 2:
+            return
+        best = min(fitted[i][0].delta_bic for i in done)
+        leaders = [i for i in done if fitted[i][0].delta_bic <= o.bic_support
+                   and fitted[i][0].delta_bic <= o.lookalike_gain * best]
+        if len(leaders) < 2:
+            return
+        if self.progress is not None:
+            self.progress.stage("settling the leaders", len(leaders), unit="effects")
+        more = replace(o, candidate_rounds=o.leader_rounds - o.candidate_rounds)
+        self.options = replace(o, candidate_rounds=o.leader_rounds)      # a proposal, fitted from the start
+        self.base = effect_fit.fit(self.log, self.base.model, self.base.poses, self.present,
+                                   rounds=more.candidate_rounds, iterations=o.candidate_iterations)
+        again = _parallel(_fit_task, [(self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:])
+                                      for i in leaders], self.workers, self.progress, self.client)
+        for i, (c, m, p) in zip(leaders, again):
+            old = fitted[i][0]
+            if old.orders:
+                c.orders = {**old.orders, c.order: c.delta_bic}
+            fitted[i] = (c, m, p)
 
     def challenge(self, cls) -> tuple[float, float]:
         c = fit_candidate(self.log, self.fit, self.base, cls, self.options)[0]
