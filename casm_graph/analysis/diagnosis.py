@@ -295,6 +295,16 @@ def best_of_family(cands: list[Candidate]) -> list[int]:
     return sorted(best.values())
 
 
+def leading(cands: list[Candidate], options: DiagnoseOptions = DEFAULTS) -> list[Candidate]:
+    """The candidates a verdict or a look-alike group could name: BIC supports each strongly (delta BIC at most
+    ``options.bic_support``) and each gains at least ``options.lookalike_gain`` of the best's delta BIC. Those are
+    what more rounds of settling are spent on."""
+    if not cands:
+        return []
+    best = min(c.delta_bic for c in cands)
+    return [c for c in cands if c.delta_bic <= options.bic_support and c.delta_bic <= options.lookalike_gain * best]
+
+
 def family_words(cands: list[Candidate], verdict_effect: str) -> list[str]:
     """A sentence on the complexity the data chose when the verdict's effect is a family."""
     c = next((c for c in cands if c.effect == verdict_effect and c.orders), None)

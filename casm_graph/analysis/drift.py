@@ -41,7 +41,7 @@ from scipy.optimize import minimize_scalar
 from scipy.stats import norm
 
 from casm_graph.models.model import ACTION_MODELS
-from casm_graph.models.velocity_table import AXES
+from casm_graph.models.velocity_table import AXES, json_number
 from factors.reading import BASES, features
 
 Z = 3.0                 # sigmas a change must exceed
@@ -115,16 +115,12 @@ class Drift:
 
 # --------------------------------------------------------------------------- the figures of one model
 
-def _num(x) -> float:
-    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else math.nan
-
-
 def parameters(model: dict) -> dict[str, dict]:
     """name -> {"family", "value", "std"} for every figure of one model.json (std NaN where unknown)."""
     out: dict[str, dict] = {}
 
     def put(name, family, value, std=math.nan):
-        out[name] = {"family": family, "value": _num(value), "std": _num(std)}
+        out[name] = {"family": family, "value": json_number(value), "std": json_number(std)}
 
     am = model.get("action_model", {}) or {}
     part = ACTION_MODELS.get(am.get("kind"))
@@ -150,7 +146,7 @@ def parameters(model: dict) -> dict[str, dict]:
 def _curve(model: dict, d: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The reading curve at distances ``d`` and its covariance (from reading_poly_cov, else the coefficients' std)."""
     sm = model.get("sensor_model", {}) or {}
-    poly = np.array([_num(c) for c in sm.get("reading_poly") or []])
+    poly = np.array([json_number(c) for c in sm.get("reading_poly") or []])
     if len(poly) == 0 or not np.isfinite(poly).all():
         return None
     basis = sm.get("reading_basis", "distance")
@@ -159,9 +155,9 @@ def _curve(model: dict, d: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     V = features(d, len(poly), basis)[0]
     cov = sm.get("reading_poly_cov")
     if cov is not None:
-        C = np.array([[_num(x) for x in row] for row in cov])
+        C = np.array([[json_number(x) for x in row] for row in cov])
     else:
-        sd = np.array([_num(s) for s in (sm.get("reading_poly_std") or [None] * len(poly))])
+        sd = np.array([json_number(s) for s in (sm.get("reading_poly_std") or [None] * len(poly))])
         C = np.diag(sd ** 2)
     if C.shape != (len(poly), len(poly)) or not np.isfinite(C).all():
         return None
@@ -286,7 +282,7 @@ def _sensor_scale(ma: dict, mb: dict) -> tuple[float, float] | None:
     """Scale of session b's reading curve against session a's at four distances both saw."""
     ra = (ma.get("sensor_model", {}) or {}).get("distance_range") or [0, 0]
     rb = (mb.get("sensor_model", {}) or {}).get("distance_range") or [0, 0]
-    lo, hi = max(_num(ra[0]), _num(rb[0])), min(_num(ra[1]), _num(rb[1]))
+    lo, hi = max(json_number(ra[0]), json_number(rb[0])), min(json_number(ra[1]), json_number(rb[1]))
     if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
         return None
     d = np.linspace(lo, hi, 4)

@@ -16,7 +16,6 @@ from casm_graph.graph import augmented, chain
 from casm_graph.graph.actions.base import sighting_means, velocity_window
 from casm_graph.graph.actions.command_poly import COMMAND_CHANGE
 from casm_graph.graph.problem import Problem, State
-from casm_graph.graph.table import Layout
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects.regional_motion_noise import region_of
 from casm_graph.models.effects.surface_friction import NODES, extent_around
@@ -38,18 +37,6 @@ def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray) -> np.ndarray:
         geo = np.where(small, k, (1 - z ** k) / np.where(small, 1.0, 1 - z))
     a, b = geo.real, geo.imag
     return np.column_stack([dt * (a * v[:, 0] - b * v[:, 1]), dt * (b * v[:, 0] + a * v[:, 1]), k * phi])
-
-
-def motion(poses: np.ndarray, lay: Layout, model: Model) -> np.ndarray:
-    """(K-1, 3) measured minus predicted displacement between consecutive knots, start body frame."""
-    a, b = poses[:-1], poses[1:]
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    meas = np.column_stack([c * ex + s * ey, -s * ex + c * ey, b[:, 2] - a[:, 2]])
-    pred = displacement(model.velocities[lay.seg_action], lay.seg_steps, lay.seg_dt)
-    r = meas - pred
-    r[:, 2] = wrap(r[:, 2])
-    return r
 
 
 def step_motion(poses: np.ndarray, log: Log, model: Model) -> np.ndarray:

@@ -140,6 +140,12 @@ def regional_noise_figure(log: Log, fit: Fit, r_ref: float = 0.2, theta_ref: flo
     return fig
 
 
+def fitted_effects(log: Log, fit: Fit | None) -> list:
+    """The effects the fit acted through (its ``hooked_effects``), instantiated for ``log``: the residuals a page
+    shows go through its sensor effects."""
+    return [cls(log) for cls in fit.notes.get("hooked_effects", ())] if fit is not None else []
+
+
 def effect_panels(log: Log, fit: Fit) -> list[str]:
     """Report sections for the fitted effects that are better seen than read (the friction field on the floor, the
     motion noise by region)."""
@@ -156,8 +162,7 @@ def fit_quality(cal) -> str:
     """The page's opening: how good the fit is, in units; the effects and their values; the run's record."""
     m, log, tr = cal.model, cal.log, cal.trajectory
     poses = np.column_stack([tr["x"], tr["y"], tr["theta"]])
-    hooked = cal.fit.notes.get("hooked_effects", ()) if cal.fit is not None else ()
-    r, b = residuals.observation(poses[log.obs_step], log, m, [k(log) for k in hooked])   # through its sensor effects
+    r, b = residuals.observation(poses[log.obs_step], log, m, fitted_effects(log, cal.fit))
     rows = []
     if m.action.std_summary() is not None:
         rows.append(m.action.std_summary())
@@ -193,8 +198,7 @@ def residual_figure(log: Log, fit: Fit):
     the model's sensor effects; the distance from the truth when the log has it."""
     m = fit.model
     mot = residuals.step_motion(fit.poses, log, m)
-    effects = [cls(log) for cls in fit.notes.get("hooked_effects", ())]
-    res = residuals.sighting_residuals(log, fit.poses[log.obs_step], m, effects)
+    res = residuals.sighting_residuals(log, fit.poses[log.obs_step], m, fitted_effects(log, fit))
     r, b, d = res["reading"], res["bearing_residual"], res["distance"]
     truth = log.truth is not None and len(log.truth) == len(fit.poses)
     fig, axs = subplots(2, 3 if truth else 2, figsize=(14 if truth else 10, 6))

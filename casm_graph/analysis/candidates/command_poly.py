@@ -16,7 +16,7 @@ import numpy as np
 
 from casm_graph.analysis.candidates.base import Bench
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, best_of_family, chosen_candidates,
-                                           family_members, folds, predicted_sightings)
+                                           family_members, folds, leading, predicted_sightings)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.residuals import sighting_residuals
 from casm_graph.fit.result import Fit
@@ -232,8 +232,7 @@ class CommandBench(Bench):
         """With ``options.decide_rounds`` above the settle rounds, the leaders and the base settled again for up
         to that many rounds and re-scored (``cands`` re-sorted in place)."""
         o, n = self.options, self.n
-        leaders = [c for c in cands if id(c) in settles and c.delta_bic <= o.bic_support
-                   and c.delta_bic <= o.lookalike_gain * cands[0].delta_bic]
+        leaders = [c for c in leading(cands, o) if id(c) in settles]
         if len(leaders) <= 1 or o.decide_rounds <= o.settle_rounds:
             return
         self.rounds = o.decide_rounds
@@ -255,8 +254,6 @@ class CommandBench(Bench):
     def challenge(self, cls) -> tuple[float, float]:
         """The proposal, settled as a hooked candidate against the same base."""
         e = cls(self.log)
-        if self.ll0 is None:
-            self.ll0 = self.settle_base(self.rounds)[0]
         gain = float(self.settle_hooked(self.rounds, e)[0] - self.ll0)
         return gain, -2 * gain + e.free_parameters() * np.log(self.n)
 

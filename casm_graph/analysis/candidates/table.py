@@ -17,6 +17,7 @@ import numpy as np
 from casm_graph.analysis.candidates.base import Bench
 from casm_graph.analysis.diagnosis import (DECIDED, DEFAULTS, SCREENED, Candidate, DiagnoseOptions, best_of_family,
                                            built_for, chosen_candidates, folds, family_members, is_supported,
+                                           leading,
                                            predicted_sightings, strong_structures)
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
@@ -258,12 +259,10 @@ class TableBench(Bench):
         against, becomes it). An effect whose optimum lies away from the base's poses (a camera latency: the poses
         must move back) needs more rounds to reach it than a look-alike whose optimum is near (an actuator lag)."""
         o = self.options
-        done = [i for i, (c, m, _) in enumerate(fitted) if m is not None]
-        if o.leader_rounds <= o.candidate_rounds or len(done) < 2:
+        if o.leader_rounds <= o.candidate_rounds:
             return
-        best = min(fitted[i][0].delta_bic for i in done)
-        leaders = [i for i in done if fitted[i][0].delta_bic <= o.bic_support
-                   and fitted[i][0].delta_bic <= o.lookalike_gain * best]
+        lead = leading([c for c, m, _ in fitted if m is not None], o)      # the fitted ones (screened have no fit)
+        leaders = [i for i, (c, _, _) in enumerate(fitted) if any(c is d for d in lead)]
         if len(leaders) < 2:
             return
         if self.progress is not None:
