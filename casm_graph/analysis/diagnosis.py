@@ -79,8 +79,7 @@ class DiagnoseOptions:
     #                                    least ``lookalike_gain`` of the best's delta BIC), they and the base go on from
     #                                    their fits to this many rounds in all before the held-out folds: the independent
     #                                    world's table latencies are named 10 of 10 (8 with two), at 1.06x the diagnosis
-    #                                    on Aibo lag10, where lag and latency lead (every candidate in three rounds: 1.16x;
-    #                                    0 or <= candidate_rounds: never)
+    #                                    on Aibo lag10, where lag and latency lead (0 or <= candidate_rounds: never)
     folds: int = 3                     # time-blocked held-out folds
     fold_iterations: int = 4           # LM iterations bounding each fold's fits
     fold_tol: float = 1e-5             # relative cost change that ends a fold fit (about 0.1 nat on these logs)
