@@ -1,4 +1,6 @@
-"""Diagnosis on a world written apart from the code: ``tests/worlds/independent_world.py``.
+"""Diagnosis on worlds written apart from the code: ``tests/worlds/independent_world.py`` (kinds ``table`` and
+``continuous``) and ``tests/worlds/omni_world.py`` (kind ``omni``: an omnidirectional walker commanded ``vx, vy, w``,
+seen by a camera's apparent size; no ``--min-range``, its camera sees from 0.4 m).
 
 That generator shares nothing with casm_graph's simulator or effect code: its own random field and
 landmarks, continuous-time motion at 200 Hz with slip, a sensor curve that is not a polynomial, and each
@@ -30,6 +32,7 @@ import casm_graph as cg                                    # noqa: E402
 from casm_graph.fit.continuous import check_effects       # noqa: E402
 from casm_graph.io.log import LogError                    # noqa: E402
 from casm_graph.models.effects import get as get_effect   # noqa: E402
+from tests.worlds import omni_world                        # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 CATALOG = {e["name"] for e in cg.catalog()}
@@ -59,7 +62,11 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
     """One world (sightings no closer than ``min_range``): calibrate (the sensor curve in ``sensor_basis``),
     diagnose, add the named (or hidden) effect, diagnose again."""
     t0 = time.perf_counter()
-    truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect, min_range=min_range)
+    if kind == "omni":
+        truth = omni_world.generate(workdir / "log", minutes=minutes, seed=seed, effect=effect)
+        truth["strength"] = truth["effect"]["strength"]
+    else:
+        truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect, min_range=min_range)
     log = cg.load_log(workdir / "log")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

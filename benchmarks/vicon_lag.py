@@ -38,7 +38,7 @@ def main():
         turn = []
         for tau in TAUS:
             ref = groundtruth.truth_fit(log, replace(for_commands(log.controls, 2, 1, gain=1.0), lag=tau))
-            bv, bw = ref.basis(log.controls, log.dt)
+            bv, _, bw = ref.basis(log.controls, log.dt)
             e, _ = factors.command.error(P[:-1], P[1:], ref.params, bv[lay.seg_idx], bw[lay.seg_idx], lay.seg_dt)
             turn.append(float(np.sqrt(np.mean(e[:, 2] ** 2))))
         print(f"| {r} | " + " | ".join(f"{x:.4f}" for x in turn) + f" | {TAUS[int(np.argmin(turn))]:g} s |", flush=True)

@@ -1,9 +1,10 @@
 """Command-model factor: the displacement between two poses equals the commands integrated through f.
 
 Between two poses the robot ran k command steps; step j moves it forward by f_v(c_j) dt_j along
-the heading it had at the step's start and turns it by f_w(c_j) dt_j (no sideways motion). With
-f_v = Bv a and f_w = Bw b linear in the parameters ``p = [a, b]``, the predicted displacement and
-its derivative are sums over the steps; segments are padded to a common length with dt = 0.
+the heading it had at the step's start, sideways by f_y(c_j) dt_j (an omnidirectional robot's ``vy``
+map; none for ``v, w``) and turns it by f_w(c_j) dt_j. With f_v = Bv a, f_y = By c and f_w = Bw b
+linear in the parameters ``p = [a, c, b]``, the predicted displacement and its derivative are sums
+over the steps; segments are padded to a common length with dt = 0.
 """
 from __future__ import annotations
 
@@ -12,28 +13,36 @@ import numpy as np
 from .base import register, relative, wrap
 
 
-def displacement(p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray):
+def displacement(p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray, By: np.ndarray | None = None):
     """Predicted (dx, dy, dtheta) in the start frame, and its (n, 3, P) derivative w.r.t. ``p``.
 
-    ``Bv`` (n, k, nv), ``Bw`` (n, k, nw) are the basis rows of each step, ``dt`` (n, k) the step
-    lengths (0 for padding), ``p`` (n, nv + nw) or (nv + nw,).
+    ``Bv`` (n, k, nv), ``Bw`` (n, k, nw) and ``By`` (n, k, ny; None: no sideways map) are the basis rows of
+    each step, ``dt`` (n, k) the step lengths (0 for padding), ``p`` (n, nv + ny + nw) or (nv + ny + nw,).
     """
-    nv = Bv.shape[-1]
-    p = np.broadcast_to(np.asarray(p, float), (Bv.shape[0], nv + Bw.shape[-1]))
+    nv, ny = Bv.shape[-1], (0 if By is None else By.shape[-1])
+    p = np.broadcast_to(np.asarray(p, float), (Bv.shape[0], nv + ny + Bw.shape[-1]))
     v = np.einsum("nki,ni->nk", Bv, p[:, :nv])
-    w = np.einsum("nki,ni->nk", Bw, p[:, nv:])
+    w = np.einsum("nki,ni->nk", Bw, p[:, nv + ny:])
     turn = w * dt
     phi = np.cumsum(turn, axis=1) - turn                  # heading at each step's start
     Phi = np.cumsum(Bw * dt[..., None], axis=1) - Bw * dt[..., None]   # d phi / d b
     c, s = np.cos(phi), np.sin(phi)
     vdt = v * dt
-    d = np.stack([np.sum(c * vdt, 1), np.sum(s * vdt, 1), np.sum(turn, 1)], axis=1)
     J = np.zeros((Bv.shape[0], 3, p.shape[1]))
     J[:, 0, :nv] = np.einsum("nk,nki->ni", c * dt, Bv)
     J[:, 1, :nv] = np.einsum("nk,nki->ni", s * dt, Bv)
-    J[:, 0, nv:] = -np.einsum("nk,nki->ni", s * vdt, Phi)
-    J[:, 1, nv:] = np.einsum("nk,nki->ni", c * vdt, Phi)
-    J[:, 2, nv:] = np.einsum("nk,nki->ni", dt, Bw)
+    J[:, 2, nv + ny:] = np.einsum("nk,nki->ni", dt, Bw)
+    if not ny:
+        d = np.stack([np.sum(c * vdt, 1), np.sum(s * vdt, 1), np.sum(turn, 1)], axis=1)
+        J[:, 0, nv:] = -np.einsum("nk,nki->ni", s * vdt, Phi)
+        J[:, 1, nv:] = np.einsum("nk,nki->ni", c * vdt, Phi)
+        return d, J
+    udt = np.einsum("nki,ni->nk", By, p[:, nv:nv + ny]) * dt
+    d = np.stack([np.sum(c * vdt - s * udt, 1), np.sum(s * vdt + c * udt, 1), np.sum(turn, 1)], axis=1)
+    J[:, 0, nv:nv + ny] = -np.einsum("nk,nki->ni", s * dt, By)
+    J[:, 1, nv:nv + ny] = np.einsum("nk,nki->ni", c * dt, By)
+    J[:, 0, nv + ny:] = -np.einsum("nk,nki->ni", s * vdt + c * udt, Phi)
+    J[:, 1, nv + ny:] = np.einsum("nk,nki->ni", c * vdt - s * udt, Phi)
     return d, J
 
 
@@ -52,11 +61,15 @@ def integrate(v: np.ndarray, dt: np.ndarray) -> np.ndarray:
 
 
 @register("command", ("pose", "pose", "vector"))
-def error(a: np.ndarray, b: np.ndarray, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray):
+def error(a: np.ndarray, b: np.ndarray, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray,
+          By: np.ndarray | None = None):
     """Body-frame displacement from pose a to pose b minus the commands integrated through f."""
     if Bv.ndim == 2:                     # one segment bound into a CustomFactor
         Bv, Bw, dt = Bv[None], Bw[None], dt[None]
+        By = None if By is None else By[None]
+    if By is not None and not By.shape[-1]:
+        By = None
     rel, Ha, Hb = relative(a, b)
-    pred, Jp = displacement(p, Bv, Bw, dt)
+    pred, Jp = displacement(p, Bv, Bw, dt, By)
     e = np.column_stack([rel[:, 0] - pred[:, 0], rel[:, 1] - pred[:, 1], wrap(rel[:, 2] - pred[:, 2])])
     return e, [Ha, Hb, -Jp]

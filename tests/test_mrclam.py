@@ -69,7 +69,7 @@ def test_command_factor_jacobians_match_numerical():
     b = a + rng.normal(scale=0.3, size=(n, 3))
     cm = for_commands(rng.uniform(-0.5, 0.5, size=(50, 2)), 2, 1)
     ctl = rng.uniform(-0.5, 0.5, size=(n * k, 2))
-    bv, bw = cm.basis(ctl)
+    bv, _, bw = cm.basis(ctl)
     Bv, Bw = bv.reshape(n, k, -1), bw.reshape(n, k, -1)
     dt = rng.uniform(0.05, 0.2, size=(n, k))
     dt[0, 4:] = 0.0                                      # padding

@@ -27,13 +27,13 @@ def truth_fit(log: Log, form: CommandModel, knot_dt: float = 1.0, iterations: in
         raise LogError("truth.csv: needed to fit the command model against ground truth")
     lay = CT.layout(log, knot_dt)
     P = log.truth[lay.knots, 1:]
-    bv, bw = form.basis(log.controls, log.dt)
-    Bv, Bw = bv[lay.seg_idx], bw[lay.seg_idx]
+    bv, by, bw = form.basis(log.controls, log.dt)
+    Bv, By, Bw = bv[lay.seg_idx], by[lay.seg_idx], bw[lay.seg_idx]
     w = 1.0 / np.sqrt(np.maximum(lay.seg_time, 1e-9))[:, None]
     p = form.params.copy()
     scale = np.ones(3)
     for it in range(iterations):
-        e, J = factors.command.error(P[:-1], P[1:], p, Bv, Bw, lay.seg_dt)
+        e, J = factors.command.error(P[:-1], P[1:], p, Bv, Bw, lay.seg_dt, By)
         if it == 2:          # per-axis scale from the residuals once the fit has settled
             scale = 1.4826 * np.median(np.abs(e * w), axis=0) + 1e-9
         ww = w / scale
@@ -44,10 +44,11 @@ def truth_fit(log: Log, form: CommandModel, knot_dt: float = 1.0, iterations: in
 
 
 def map_errors(learned: CommandModel, ref: CommandModel, controls: np.ndarray, dt: np.ndarray) -> dict:
-    """RMS difference of the two maps over the commands run (time-weighted), absolute and per range of ``ref``."""
+    """RMS difference of the two maps over the commands run (time-weighted), absolute and per range of ``ref``:
+    ``v`` the forward map, ``w`` the turn map, ``vy`` the sideways one (``vx, vy, w`` commands)."""
     a, b = learned.velocities(controls), ref.velocities(controls)
     out = {}
-    for name, j in (("v", 0), ("w", 2)):
+    for name, j in (("v", 0), ("w", 2), *((("vy", 1),) if learned.sizes[1] else ())):
         rms = float(np.sqrt(np.sum(dt * (a[:, j] - b[:, j]) ** 2) / np.sum(dt)))
         span = float(np.ptp(b[:, j]))
         out[name] = {"rms": rms, "range": span, "fraction": rms / span if span > 0 else float("nan")}

@@ -27,13 +27,14 @@ from casm_graph.fit import turns
 from casm_graph.fit import windows as W
 from casm_graph.fit.residuals import sighting_residuals
 from casm_graph.fit.result import Fit, Progress
+from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.graph import augmented, robust
 from casm_graph.graph import table as G
 from casm_graph.graph.actions.command_poly import Layout, layout
 from casm_graph.graph.problem import THETA, Problem, State
 from casm_graph.io.log import Log, LogError
-from casm_graph.models.command_model import for_commands
+from casm_graph.models.command_model import COMMANDS, for_commands
 from casm_graph.models.effects import of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
@@ -82,6 +83,7 @@ class CommandGraphOptions:
     regional_tol: float = 0.02         # by this share (slow where sightings say little about single steps)
     hooked_rounds: int = 3             # fine rounds with hooked effects' parameters free (then up to ``full_settle`` more)
     profile: ProfileOptions = field(default_factory=ProfileOptions)   # the lag's search
+    sensor_curve: SensorCurveOptions = field(default_factory=SensorCurveOptions)   # when the data move the curve
 
     def to_json(self) -> dict:
         return {**asdict(self), "profile": self.profile.to_json()}
@@ -100,8 +102,9 @@ def options_of(model: Model) -> CommandGraphOptions:
         recorded.setdefault("full_knot_dt", fit["knot_dt"])
     known = {}
     for k, v in recorded.items():
-        if k not in CommandGraphOptions.__dataclass_fields__ or isinstance(getattr(DEFAULTS, k), ProfileOptions):
-            continue                    # the profile's search is not part of the graph
+        if k not in CommandGraphOptions.__dataclass_fields__ or isinstance(getattr(DEFAULTS, k),
+                                                                             (ProfileOptions, SensorCurveOptions)):
+            continue                    # the profile's search and the curve's choice are not part of the graph
         spacing = k.endswith("_dt")     # a knot spacing must be positive, a count or tolerance non-negative
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0 or (spacing and v == 0):
             raise LogError(f"model.json: fit.options.command_graph.{k} must be a "
@@ -142,11 +145,12 @@ def initialise(log: Log, model: Model, options: W.WindowOptions | None = None) -
     start's sensor curve.
     """
     cm = model.command
-    nominal = replace(for_commands(log.controls, len(cm.v_coef) - 1, len(cm.w_coef) - 1, gain=1.0), lag=cm.lag,
+    nv, ny, nw = cm.sizes
+    nominal = replace(for_commands(log.controls, nv - 1, nw - 1, gain=1.0, y_degree=ny - 1), lag=cm.lag,
                       lag_order=cm.lag_order)
-    speed = 2.0 * float(np.max(np.abs(log.controls[:, 0])))   # random walk faster than any commanded speed
-    ws = W.window_start(log, nominal.velocities(log.controls, log.dt), len(model.reading_poly), max(speed, 0.05),
-                        options)
+    v = nominal.velocities(log.controls, log.dt)
+    speed = 2.0 * float(np.max(np.hypot(v[:, 0], v[:, 1])))   # random walk faster than any commanded speed
+    ws = W.window_start(log, v, len(model.reading_poly), max(speed, 0.05), options)
     return W.with_model(ws, model.with_(command=nominal), log)
 
 
@@ -159,8 +163,8 @@ def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: i
     Either channel may be missing from the whole log (range-only or bearing-only sensors); the
     model then records which channels it has (``Model.channels``).
     """
-    if log.controls is None or log.control_names != ("v", "w"):
-        raise LogError("commands.csv: the continuous-command model needs columns 'v,w' "
+    if log.controls is None or tuple(log.control_names) not in COMMANDS:
+        raise LogError("commands.csv: the continuous-command model needs columns 'v,w' or 'vx,vy,w' "
                        f"(this log has {','.join(log.control_names) or 'action'})")
     n_r, n_b = int(np.sum(~np.isnan(log.obs_reading))), int(np.sum(~np.isnan(log.obs_bearing)))
     span = log.pose_times[-1] - log.pose_times[0]
@@ -180,7 +184,8 @@ def identity_model(log: Log, like: Model) -> Model:
     """The uncalibrated models: actual velocity = command, reading = distance, no effects; noise levels of ``like``."""
     poly = np.zeros(len(like.reading_poly))
     poly[1] = 1.0
-    cm = for_commands(log.controls, len(like.command.v_coef) - 1, len(like.command.w_coef) - 1, gain=1.0)
+    nv, ny, nw = like.command.sizes
+    cm = for_commands(log.controls, nv - 1, nw - 1, gain=1.0, y_degree=ny - 1)
     return like.with_(command=cm, reading_poly=poly, effects={})
 
 
@@ -310,13 +315,36 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
 
 def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
         marginals: bool = True, start_options: W.WindowOptions | None = None,
-        options: CommandGraphOptions = DEFAULTS) -> Fit:
+        options: CommandGraphOptions = DEFAULTS, max_sensor_degree: int = 0, free_basis: bool = False) -> Fit:
     """Calibrate a continuous-command log: global start (searched as ``start_options`` say), coarse graph in
-    rounds, finer graph (as ``options`` say), marginals."""
+    rounds, finer graph (as ``options`` say), marginals. ``max_sensor_degree``: the sensor polynomial's degree may
+    rise to it when the data demand; ``free_basis``: when the fit in d shows a near-range misfit, a fit with the
+    curve in 1/d competes (:mod:`casm_graph.fit.sensor_degree`, as on action tables)."""
     progress = progress or Progress()
-    t0 = time.perf_counter()
-    o = options
     start = start or start_model(log)
+    first = _fit(log, start, seed, progress, marginals, start_options, options, max_sensor_degree)
+    if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log, options.sensor_curve)):
+        return first
+    progress.stage("the sensor curve in 1/d", None)
+    other = _fit(log, start.with_(reading_basis="inverse_distance"), seed, progress, marginals, start_options,
+                 options, max_sensor_degree)
+    return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)),
+                        options.sensor_curve)
+
+
+def sighting_log_likelihood(log: Log, fit: Fit) -> float:
+    """log p(data, knots | model) of ``fit`` at its poses and noise levels with every sighting in (none set aside,
+    Huber's loss on the wild ones): fits that set aside different sightings scored on the same data."""
+    lay = layout(log, options_of(fit.model).full_knot_dt)
+    kp = fit.poses[lay.knots]
+    problem = Problem(log, fit.model, lay=lay, poses=kp)
+    return problem_log_likelihood(problem, problem.state(kp, fit.model), fit.model)
+
+
+def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
+         start_options: W.WindowOptions | None, o: CommandGraphOptions, max_sensor_degree: int) -> Fit:
+    """One calibration from ``start`` (:func:`fit`'s arguments)."""
+    t0 = time.perf_counter()
     start_options = start_options or W.WindowOptions()
     co = coarse_start(log, start, seed, progress, start_options, o)
     model, poses, trace, stages, it1 = co.model, co.poses, co.trace, co.stages, co.iterations
@@ -334,18 +362,27 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
             after = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
             if np.max(np.abs(np.log(after / before))) < o.regional_tol:
                 break
+    asked = len(model.reading_poly) - 1
     progress.stage("full graph", o.full_rounds)
-    model, kp, problem, st, its, converged = optimise_rounds(
-        log, full, model, poses[full.knots], o.full_rounds, o.full_iterations, seed + 100, "full", trace, stages,
-        progress, last_noise=False, settle=o.full_settle, noise_tol=o.noise_tol)
-    it2 += its
-    poses = fill_in(log, model, full.knots, kp)
+    for attempt in range(2):
+        model, kp, problem, st, its, converged = optimise_rounds(
+            log, full, model, poses[full.knots], o.full_rounds, o.full_iterations, seed + 100, "full", trace, stages,
+            progress, last_noise=False, settle=o.full_settle, noise_tol=o.noise_tol)
+        it2 += its
+        poses = fill_in(log, model, full.knots, kp)
+        sel = problem.r_sel
+        d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[sel]
+        better = None if attempt else choose_curve(d, log.obs_reading[sel], model.reading_poly, model.reading_sigma,
+                                                   max_sensor_degree, model.reading_basis, o.sensor_curve)
+        if better is None:
+            break
+        model = model.with_(reading_poly=better[0], reading_basis=better[1])     # the data demand another curve
+        progress.stage(f"full graph, sensor degree {len(better[0]) - 1}"
+                       + (" in 1/d" if better[1] == "inverse_distance" else ""), o.full_rounds)
     pose_std = np.full_like(poses, np.nan)
     if marginals:
         progress.stage("marginals", None)
         model, pose_std, _ = with_marginals(log, full, kp, problem, st, model)
-    sel = problem.r_sel
-    d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[sel]
     ll = problem_log_likelihood(problem, st, model)
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": "graph", "iterations": it1 + it2,
@@ -355,7 +392,9 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                              "start_slopes": [[round(s.slope, 6), round(h, 1)] for s, h in zip(starts, co.held)
                                               if np.isfinite(s.slope)],
                              "outliers_set_aside": {"reading": int((~sel & ~np.isnan(log.obs_reading)).sum()),
-                                                    "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())}})
+                                                    "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())},
+                             "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1,
+                                               "basis": model.reading_basis}})
     return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=it1 + it2,
                converged=converged, log_likelihood=ll,
                notes={"hypothesis": list(starts[0].hypothesis), "start_log_evidence": starts[0].log_evidence,
@@ -616,10 +655,19 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
                       "hooked_effects": [type(e) for e in effects]})
 
 
+def with_curve_of(start: Model, fitted: Model) -> Model:
+    """``start`` with the degree and variable of ``fitted``'s sensor curve (its coefficients the start's own)."""
+    if (fitted.reading_basis, len(fitted.reading_poly)) == (start.reading_basis, len(start.reading_poly)):
+        return start
+    poly = np.zeros(len(fitted.reading_poly))
+    poly[0] = start.reading_poly[0]
+    return start.with_(reading_poly=poly, reading_basis=fitted.reading_basis)
+
+
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
                      progress: Progress | None = None, marginals: bool = True,
                      regions: RMN.Regions | None = None, options: CommandGraphOptions = DEFAULTS,
-                     base: Fit | None = None) -> Fit:
+                     base: Fit | None = None, max_sensor_degree: int = 0, free_basis: bool = False) -> Fit:
     """``fit`` with effects (names, classes or instances): fit without them (or settle ``base``, a fit of ``start``
     by another method, on the full graph: the EM methods' effects start from their own fit), then for each profiled effect in
     turn profile it on the latest fit and refit with it set at its maximum. regional_motion_noise is not
@@ -636,8 +684,10 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     profiled = [n for n in named if n in EFFECTS]
     noisy = [n for n in named if n in NOISE_EFFECTS]
     hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
-    if base is None:
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options)
+    if base is None:         # the sensor curve is chosen here (``max_sensor_degree``, ``free_basis``) and kept after
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options,
+                  max_sensor_degree=max_sensor_degree, free_basis=free_basis)
+        start = with_curve_of(start, out.model)
     else:                    # settled on the full graph first: a profile reads the poses it starts from
         out = fit_hooked(log, base, [], seed=seed, progress=progress, marginals=False, options=options)
     warm = {}

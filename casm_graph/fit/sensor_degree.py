@@ -73,11 +73,12 @@ def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, si
 
 def suspect(model: Model, log: Log, options: SensorCurveOptions = DEFAULTS) -> bool:
     """Whether a calibration shows the marks of a curve that misses near the landmarks: the data raised its
-    degree, or it pruned more than ``options.suspect_pruned`` of the readings (a clean log prunes about 1 in 100,000)."""
+    degree, or it pruned (set aside, on continuous commands) more than ``options.suspect_pruned`` of the readings (a
+    clean log prunes about 1 in 100,000)."""
     degree = model.fit.get("sensor_degree", {})
     n = int(np.sum(np.isfinite(log.obs_reading)))
-    return n > 0 and (degree.get("fitted", 0) > degree.get("asked", 0)
-                      or model.fit.get("outliers_pruned", 0) > options.suspect_pruned * n)
+    pruned = model.fit.get("outliers_pruned", (model.fit.get("outliers_set_aside") or {}).get("reading", 0))
+    return n > 0 and (degree.get("fitted", 0) > degree.get("asked", 0) or pruned > options.suspect_pruned * n)
 
 
 def better_curve(log: Log, first, other, scores: tuple[float, float], options: SensorCurveOptions = DEFAULTS):

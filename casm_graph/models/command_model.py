@@ -1,10 +1,11 @@
 """Action model for continuous commands: actual velocity = polynomial of the commanded one.
 
 A wheeled robot commanded ``(v, w)`` moves forward at ``f_v(v)`` and turns at ``f_w(w)`` with no
-sideways motion. Each map is a short polynomial in the command divided by a fixed scale (the
-largest command magnitude in the log), so every coefficient is a velocity in m/s or rad/s and the
-whole model is one parameter vector ``[a_0..a_Dv, b_0..b_Dw]`` that is linear in the basis: the
-graph holds it as a single vector variable next to the poses and the sensor polynomial.
+sideways motion; an omnidirectional one commanded ``(vx, vy, w)`` also moves sideways at ``f_y(vy)``.
+Each map is a short polynomial in its command divided by a fixed scale (the largest command magnitude
+in the log), so every coefficient is a velocity in m/s or rad/s and the whole model is one parameter
+vector ``[a_0..a_Dv, c_0..c_Dy, b_0..b_Dw]`` (no ``c`` without a sideways command) that is linear in the
+basis: the graph holds it as a single vector variable next to the poses and the sensor polynomial.
 
 With the ``actuator_lag`` effect the velocity follows ``f(command)`` through ``lag_order`` cascaded
 first-order lags, each of time constant ``lag / lag_order`` (so ``lag`` is the mean delay whatever the
@@ -14,7 +15,7 @@ coefficients; ``velocities(controls)`` without step durations is the steady-stat
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numba import njit
@@ -23,6 +24,7 @@ from casm_graph.io.log import LogError
 from casm_graph.models.velocity_table import VelocityTable, json_number
 
 KIND = "command_poly"
+COMMANDS = (("v", "w"), ("vx", "vy", "w"))      # the command columns a map can read: wheeled, omnidirectional
 
 
 @njit(cache=True)
@@ -53,43 +55,72 @@ def lagged(x: np.ndarray, dt: np.ndarray, lag: float, order: int = 1) -> np.ndar
 
 @dataclass(frozen=True)
 class CommandModel:
-    """f_v(v) = sum a_i (v / scale_v)**i, f_w(w) = sum b_i (w / scale_w)**i, lateral velocity 0."""
+    """f_v(v) = sum a_i (v / scale_v)**i, f_w(w) = sum b_i (w / scale_w)**i; lateral velocity 0 for ``v, w``
+    commands, f_y(vy) = sum c_i (vy / scale_vy)**i for ``vx, vy, w``."""
 
     kind = KIND
     zero_start = False          # a zero map never moves under EKFS-EM: it starts from the log-only initialiser
 
-    scale: tuple[float, float]            # command scales (v, w)
-    v_coef: np.ndarray                    # (Dv+1,)
-    w_coef: np.ndarray                    # (Dw+1,)
+    scale: tuple[float, ...]              # command scales, one per command column
+    v_coef: np.ndarray                    # (Dv+1,) forward map
+    w_coef: np.ndarray                    # (Dw+1,) turn map
     v_std: np.ndarray | None = None
     w_std: np.ndarray | None = None
     command_range: tuple = ((0.0, 0.0), (0.0, 0.0))
     lag: float = 0.0                      # s, mean delay of the lag between command and velocity (0: none)
     lag_order: int = 1                    # cascaded first-order stages of that lag (1 or 2)
+    commands: tuple[str, ...] = ("v", "w")   # the command columns: ``v, w`` or ``vx, vy, w``
+    y_coef: np.ndarray = field(default_factory=lambda: np.zeros(0))   # (Dy+1,) sideways map (``vy`` commands only)
+    y_std: np.ndarray | None = None
 
     @property
     def params(self) -> np.ndarray:
-        return np.concatenate([self.v_coef, self.w_coef])
+        return np.concatenate([self.v_coef, self.y_coef, self.w_coef])
 
     @property
     def n_v(self) -> int:
         return len(self.v_coef)
 
+    @property
+    def sizes(self) -> tuple[int, int, int]:
+        """Coefficients of the forward, sideways (0 without ``vy``) and turn maps, in the parameter vector's order."""
+        return len(self.v_coef), len(self.y_coef), len(self.w_coef)
+
+    @property
+    def maps(self) -> list[tuple[str, int, int, slice]]:
+        """(command, its column in the controls, the body axis it drives, its slice of ``params``) of each map."""
+        nv, ny, nw = self.sizes
+        out = [(self.commands[0], 0, 0, slice(0, nv))]
+        if len(self.commands) == 3:
+            out.append((self.commands[1], 1, 1, slice(nv, nv + ny)))
+        out.append((self.commands[-1], len(self.commands) - 1, 2, slice(nv + ny, nv + ny + nw)))
+        return out
+
+    def coefficients(self, command: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """(coefficients, posterior std or None) of the map of ``command``."""
+        axis = next(a for c, _, a, _ in self.maps if c == command)
+        return [(self.v_coef, self.v_std), (self.y_coef, self.y_std), (self.w_coef, self.w_std)][axis]
+
     def with_params(self, p: np.ndarray, std: np.ndarray | None = None) -> "CommandModel":
         p = np.asarray(p, float)
-        kw = {"v_coef": p[:self.n_v].copy(), "w_coef": p[self.n_v:].copy()}
+        nv, ny, _ = self.sizes
+        kw = {"v_coef": p[:nv].copy(), "y_coef": p[nv:nv + ny].copy(), "w_coef": p[nv + ny:].copy()}
         if std is not None:
-            kw.update(v_std=np.asarray(std[:self.n_v], float), w_std=np.asarray(std[self.n_v:], float))
+            std = np.asarray(std, float)
+            kw.update(v_std=std[:nv], y_std=std[nv:nv + ny] if ny else None, w_std=std[nv + ny:])
         return replace(self, **kw)
 
-    def basis(self, controls: np.ndarray, dt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(n, Dv+1) and (n, Dw+1) monomials of the scaled commands; with the steps' ``dt``, through the lag."""
+    def basis(self, controls: np.ndarray, dt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(n, Dv+1), (n, Dy+1) and (n, Dw+1) monomials of the scaled commands (the sideways one (n, 0) without
+        ``vy``); with the steps' ``dt``, through the lag."""
         u = np.asarray(controls, float) / np.asarray(self.scale)
-        bv, bw = u[:, 0:1] ** np.arange(self.n_v), u[:, 1:2] ** np.arange(len(self.w_coef))
+        nv, ny, nw = self.sizes
+        bv, bw = u[:, 0:1] ** np.arange(nv), u[:, -1:] ** np.arange(nw)
+        by = u[:, 1:2] ** np.arange(ny) if ny else np.zeros((len(u), 0))
         if dt is None or self.lag <= 0:
-            return bv, bw
-        both = lagged(np.hstack([bv, bw]), dt, self.lag, self.lag_order)
-        return both[:, :self.n_v], both[:, self.n_v:]
+            return bv, by, bw
+        every = lagged(np.hstack([bv, by, bw]), dt, self.lag, self.lag_order)
+        return every[:, :nv], every[:, nv:nv + ny], every[:, nv + ny:]
 
     def lag_memory(self, dt: np.ndarray) -> np.ndarray:
         """(T,) displacement over each step per unit of velocity offset the lag held when the log began (the
@@ -106,8 +137,8 @@ class CommandModel:
 
     def velocities(self, controls: np.ndarray, dt: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) body-frame (forward, lateral, turn) velocity for each command row (steady state without ``dt``)."""
-        bv, bw = self.basis(controls, dt)
-        return np.column_stack([bv @ self.v_coef, np.zeros(len(bv)), bw @ self.w_coef])
+        bv, by, bw = self.basis(controls, dt)
+        return np.column_stack([bv @ self.v_coef, by @ self.y_coef, bw @ self.w_coef])
 
     def step_velocities(self, log) -> np.ndarray:
         """(T, 3) the map at each step's ``v, w``, through the lag."""
@@ -115,21 +146,20 @@ class CommandModel:
 
     def fitted_to_steps(self, log, moved: np.ndarray) -> "CommandModel":
         """The maps' regression on their basis of the steps' displacements ``moved`` (T, 3): forward on the v map,
-        turn on the w map (no sideways motion in a command map)."""
-        bv, bw = self.basis(log.controls, log.dt)
+        sideways on the vy map (none without ``vy``), turn on the w map."""
         dt = np.asarray(log.dt, float)[:, None]
-        a = np.linalg.lstsq(bv * dt, moved[:, 0], rcond=None)[0]
-        b = np.linalg.lstsq(bw * dt, moved[:, 2], rcond=None)[0]
-        return self.with_params(np.concatenate([a, b]))
+        parts = [np.linalg.lstsq(b * dt, moved[:, axis], rcond=None)[0] if b.shape[1] else np.zeros(0)
+                 for b, axis in zip(self.basis(log.controls, log.dt), (0, 1, 2))]
+        return self.with_params(np.concatenate(parts))
 
     def for_log(self, log, source: str = "the model") -> "CommandModel":
-        """The map itself, after checking that ``log`` has the ``v, w`` commands it maps."""
+        """The map itself, after checking that ``log`` has the commands it maps."""
         if log.controls is None:
             raise LogError(f"{source} is a command map (continuous commands) and {log.source or 'the log'} runs "
                            f"discrete actions; calibrate this log first")
-        if tuple(log.control_names) != ("v", "w"):
-            raise LogError(f"commands.csv: the command map needs columns 'v,w' (this log has "
-                           f"{','.join(log.control_names)})")
+        if tuple(log.control_names) != tuple(self.commands):
+            raise LogError(f"commands.csv: {source} maps commands '{','.join(self.commands)}' and this log has "
+                           f"'{','.join(log.control_names)}'; calibrate this log first")
         return self
 
     def step_table(self, log) -> tuple[np.ndarray, VelocityTable]:
@@ -141,17 +171,17 @@ class CommandModel:
         """The coefficients' posterior std for a JSON file (the uncertainty run's Laplace section)."""
         def lst(a):
             return None if a is None else np.asarray(a, float).tolist()
-        return {"command_std": {"v": lst(self.v_std), "w": lst(self.w_std)}}
+        return {"command_std": {c: lst(self.coefficients(c)[1]) for c, *_ in self.maps}}
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the coefficients' posterior std, None before marginals."""
         if self.v_std is None:
             return None
-        return ("command map coefficient std", "v " + ", ".join(f"{x:.2g}" for x in self.v_std)
-                + "; w " + ", ".join(f"{x:.2g}" for x in self.w_std))
+        return ("command map coefficient std", "; ".join(
+            f"{c} " + ", ".join(f"{x:.2g}" for x in self.coefficients(c)[1]) for c, *_ in self.maps))
 
     def describe(self) -> str:
-        return "continuous commands v,w"
+        return "continuous commands " + ",".join(self.commands)
 
     def model_fields(self) -> dict:
         """The :class:`casm_graph.models.model.Model` fields that hold this action model."""
@@ -160,12 +190,12 @@ class CommandModel:
     def to_json(self) -> dict:
         def lst(a):
             return None if a is None else [float(x) for x in a]
-        return {"kind": KIND, "commands": ["v", "w"], "lateral": 0.0,
-                "scale": {"v": float(self.scale[0]), "w": float(self.scale[1])},
-                "coefficients": {"v": lst(self.v_coef), "w": lst(self.w_coef)},
-                "std": {"v": lst(self.v_std), "w": lst(self.w_std)},
-                "command_range": {"v": [float(x) for x in self.command_range[0]],
-                                  "w": [float(x) for x in self.command_range[1]]},
+        names = list(self.commands)
+        return {"kind": KIND, "commands": names, **({"lateral": 0.0} if len(names) == 2 else {}),
+                "scale": {c: float(s) for c, s in zip(names, self.scale)},
+                "coefficients": {c: lst(self.coefficients(c)[0]) for c in names},
+                "std": {c: lst(self.coefficients(c)[1]) for c in names},
+                "command_range": {c: [float(x) for x in r] for c, r in zip(names, self.command_range)},
                 "lag": float(self.lag), "lag_order": int(self.lag_order)}
 
     @staticmethod
@@ -202,22 +232,34 @@ class CommandModel:
     def from_json(cls, am: dict) -> "CommandModel":
         std = am.get("std") or {}
         rng = am.get("command_range") or {}
-        return cls(scale=(float(am["scale"]["v"]), float(am["scale"]["w"])),
-                   v_coef=np.array(am["coefficients"]["v"], float),
-                   w_coef=np.array(am["coefficients"]["w"], float),
-                   v_std=None if std.get("v") is None else np.array(std["v"], float),
-                   w_std=None if std.get("w") is None else np.array(std["w"], float),
-                   command_range=(tuple(rng.get("v", (0.0, 0.0))), tuple(rng.get("w", (0.0, 0.0)))),
-                   lag=float(am.get("lag", 0.0)), lag_order=int(am.get("lag_order", 1)))
+        names = tuple(am.get("commands") or ("v", "w"))
+        if names not in COMMANDS:
+            raise KeyError(f"commands must be one of {', '.join(','.join(c) for c in COMMANDS)}")
+
+        def arr(d, c):
+            return None if d.get(c) is None else np.array(d[c], float)
+
+        side = {"y_coef": arr(am["coefficients"], names[1]), "y_std": arr(std, names[1])} if len(names) == 3 else {}
+        return cls(scale=tuple(float(am["scale"][c]) for c in names),
+                   v_coef=arr(am["coefficients"], names[0]), w_coef=arr(am["coefficients"], names[-1]),
+                   v_std=arr(std, names[0]), w_std=arr(std, names[-1]),
+                   command_range=tuple(tuple(rng.get(c, (0.0, 0.0))) for c in names),
+                   lag=float(am.get("lag", 0.0)), lag_order=int(am.get("lag_order", 1)), commands=names, **side)
 
 
 def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,
-                 gain: float = 0.0) -> CommandModel:
-    """A model sized for ``controls``: every map ``gain`` times the identity (0: the paper's zero start)."""
+                 gain: float = 0.0, y_degree: int | None = None) -> CommandModel:
+    """A model sized for ``controls`` (columns ``v, w``, or ``vx, vy, w``: a sideways map of ``y_degree``, default
+    ``v_degree``): every map ``gain`` times the identity (0: the paper's zero start)."""
+    controls = np.asarray(controls, float)
+    names = COMMANDS[0] if controls.shape[1] == 2 else COMMANDS[1]
     scale = np.max(np.abs(controls), axis=0)
     scale = np.where(scale > 0, scale, 1.0)
     v, w = np.zeros(v_degree + 1), np.zeros(w_degree + 1)
-    v[1], w[1] = gain * scale[0], gain * scale[1]
-    rng = ((float(controls[:, 0].min()), float(controls[:, 0].max())),
-           (float(controls[:, 1].min()), float(controls[:, 1].max())))
-    return CommandModel(scale=(float(scale[0]), float(scale[1])), v_coef=v, w_coef=w, command_range=rng)
+    y = np.zeros((v_degree if y_degree is None else y_degree) + 1) if len(names) == 3 else np.zeros(0)
+    v[1], w[1] = gain * scale[0], gain * scale[-1]
+    if len(y):
+        y[1] = gain * scale[1]
+    rng = tuple((float(c.min()), float(c.max())) for c in controls.T)
+    return CommandModel(scale=tuple(float(x) for x in scale), v_coef=v, w_coef=w, command_range=rng, commands=names,
+                        y_coef=y)

@@ -12,7 +12,7 @@ import numpy as np
 from casm_graph.io.log import Log, LogError
 from factors.reading import BASES, curve, features
 from casm_graph.io.output import strict
-from casm_graph.models.command_model import CommandModel
+from casm_graph.models.command_model import COMMANDS, CommandModel
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.velocity_table import VelocityTable
 
@@ -294,7 +294,11 @@ def _command_model(w: _Where, am: dict):
     coef = w.obj(am.get("coefficients"), "action_model.coefficients")
     std = w.obj(am.get("std") or {}, "action_model.std")
     rng = w.obj(am.get("command_range") or {}, "action_model.command_range")
-    for c in ("v", "w"):
+    names = am.get("commands", ["v", "w"])
+    if not isinstance(names, list) or tuple(names) not in COMMANDS:
+        w.fail("action_model.commands", f"is {_one_line(repr(names))[:40]}, expected "
+               + " or ".join(repr(list(c)) for c in COMMANDS))
+    for c in names:
         w.num(scale.get(c), f"action_model.scale.{c}", positive=True)
         n = len(w.vec(coef.get(c), f"action_model.coefficients.{c}", max_len=MAX_POLY))
         if std.get(c) is not None:

@@ -34,7 +34,7 @@ def _cell(v) -> str:
 
 def table(rows: list[dict], drifted: dict) -> str:
     cols = [c for c in SHOWN if any(c in r for r in rows)]
-    coef = sorted({c for r in rows for c in r if c.startswith(("v_coef", "w_coef"))})
+    coef = sorted({c for r in rows for c in r if "_coef_" in c})      # a command map's, per command
     cols[cols.index("reading_sigma"):cols.index("reading_sigma")] = coef
     head = "".join(f"<th>{html.escape(c)}</th>" for c in cols) + "<th>error</th>"
     body = []

@@ -274,23 +274,27 @@ def velocity_table(fit: Fit, truth: dict | None) -> str:
     return summary + f"<table>{head}{''.join(rows)}</table>"
 
 
+AXIS_NAMES = ("forward speed", "sideways speed", "turn rate")
+
+
 def maps_figure(log: Log, fit: Fit, reference=None):
-    """Learned forward-speed and turn-rate maps over the commands run (and a reference map, if given)."""
+    """Learned forward-speed, sideways-speed (``vx, vy, w`` logs) and turn-rate maps over the commands run (and a
+    reference map, if given)."""
     cm = fit.model.command
-    fig, axes = subplots(1, 2, figsize=(11, 4))
-    for ax, j, name, unit in ((axes[0], 0, "v", "m/s"), (axes[1], 1, "w", "rad/s")):
+    fig, axes = subplots(1, len(cm.maps), figsize=(5.5 * len(cm.maps), 4))
+    for ax, (name, j, k, _) in zip(np.atleast_1d(axes), cm.maps):
+        unit = "rad/s" if k == 2 else "m/s"
         c = log.controls[:, j]
         grid = np.linspace(c.min(), c.max(), 200)
-        ctl = np.zeros((len(grid), 2))
+        ctl = np.zeros((len(grid), log.controls.shape[1]))
         ctl[:, j] = grid
-        k = 0 if j == 0 else 2
         ax.hist(c, bins=60, weights=log.dt, color="0.85", label="time at command (s, right axis)")
         ax2 = ax.twinx()
         ax2.plot(grid, grid, "k:", label="nominal (= command)")
         ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned")
         if reference is not None:
             ax2.plot(grid, reference.velocities(ctl)[:, k], "C3--", lw=2, label="fitted against truth")
-        ax.set(xlabel=f"commanded {name} ({unit})", title=f"{'forward speed' if j == 0 else 'turn rate'} map")
+        ax.set(xlabel=f"commanded {name} ({unit})", title=f"{AXIS_NAMES[k]} map")
         ax2.set_ylabel(f"actual {name} ({unit})")
         ax2.legend(loc="upper left", fontsize=8)
         ax.yaxis.set_visible(False)
@@ -301,8 +305,8 @@ def maps_figure(log: Log, fit: Fit, reference=None):
 def command_facts(m: Model) -> list[tuple]:
     """The command maps' coefficients, for the page's table of the fit."""
     cm = m.command
-    return [("speed map v(c)", ", ".join(f"{x:.4g}" for x in cm.v_coef) + f" (powers of c/{cm.scale[0]:.3g})"),
-            ("turn map w(c)", ", ".join(f"{x:.4g}" for x in cm.w_coef) + f" (powers of c/{cm.scale[1]:.3g})")]
+    return [(f"{('speed', 'sideways', 'turn')[k]} map {name}(c)", ", ".join(f"{x:.4g}" for x in cm.params[sl])
+             + f" (powers of c/{cm.scale[j]:.3g})") for name, j, k, sl in cm.maps]
 
 
 @dataclass(frozen=True)

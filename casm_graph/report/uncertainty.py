@@ -94,23 +94,27 @@ def unseen_ranges(unc, step: float = 0.1) -> list[tuple[float, float]]:
     return out
 
 
+MAP_WORDS = (("speed", "m/s"), ("sideways speed", "m/s"), ("turn rate", "rad/s"))   # by body axis
+
+
 def command_band(unc, which: int, points: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(commands, mapped velocity, its Laplace std) of the speed (``which`` 0) or turn (1) map over the log's
-    commands."""
+    """(commands, mapped velocity, its Laplace std) of the command model's map ``which`` (``CommandModel.maps``:
+    speed, [sideways,] turn) over the log's commands."""
     cm = unc.model.command
-    c = unc.log.controls[:, which]
+    _, col, axis, part = cm.maps[which]
+    c = unc.log.controls[:, col]
     grid = np.linspace(c.min(), c.max(), points)
-    controls = np.zeros((points, 2))
-    controls[:, which] = grid
-    basis = cm.basis(controls)[which]
-    part = slice(0, cm.n_v) if which == 0 else slice(cm.n_v, cm.n_v + len(cm.w_coef))
+    controls = np.zeros((points, unc.log.controls.shape[1]))
+    controls[:, col] = grid
+    basis = cm.basis(controls)[axis]
     C = unc.cov_theta[part, part]
     return grid, basis @ cm.params[part], np.sqrt(np.clip(np.einsum("ni,ij,nj->n", basis, C, basis), 0, None))
 
 
 def rare_commands(unc, which: int) -> list[tuple[float, float]]:
-    """Command intervals (``COMMAND_BINS`` over the log's range) driven in fewer than ``RARE_FRACTION`` of the steps."""
-    c = unc.log.controls[:, which]
+    """Command intervals (``COMMAND_BINS`` over the log's range) driven in fewer than ``RARE_FRACTION`` of the steps,
+    for map ``which``."""
+    c = unc.log.controls[:, unc.model.command.maps[which][1]]
     n, edges = np.histogram(c, COMMAND_BINS)
     out = []
     for a, b, k in zip(edges[:-1], edges[1:], n):
@@ -146,7 +150,8 @@ def _assess_table(unc, known, weak, advice) -> dict:
 def _assess_command(unc, known, weak, advice) -> dict:
     """Each command map's 90 % band over the commands driven, and the commands the log rarely drove."""
     rare = {}
-    for which, (name, unit, cmd) in enumerate((("speed map", "m/s", "v"), ("turn map", "rad/s", "w"))):
+    for which, (cmd, _, axis, _) in enumerate(unc.model.command.maps):
+        name, unit = MAP_WORDS[axis][0].split()[0] + " map", MAP_WORDS[axis][1]
         grid, _, s = command_band(unc, which)
         known.append(f"{name}: 90 % half-width {1.645 * np.median(s):.3g} {unit} (median) to "
                      f"{1.645 * np.max(s):.3g} {unit} (widest) over the commands {cmd} = {grid[0]:.3g} to "
@@ -289,8 +294,10 @@ def velocity_std_figure(unc, verdict):
 
 def command_map_figure(unc, verdict):
     """Speed and turn maps with their 90 % bands over the commands driven, the commands' histogram below."""
-    fig, axes = subplots(2, 2, figsize=(10, 5.5), sharex="col", gridspec_kw={"height_ratios": [3, 1]})
-    for which, (cmd, unit) in enumerate((("v", "m/s"), ("w", "rad/s"))):
+    maps = unc.model.command.maps
+    fig, axes = subplots(2, len(maps), figsize=(5 * len(maps), 5.5), sharex="col", gridspec_kw={"height_ratios": [3, 1]})
+    for which, (cmd, col, axis, _) in enumerate(maps):
+        what, unit = MAP_WORDS[axis]
         ax, axh = axes[0, which], axes[1, which]
         grid, mean, s = command_band(unc, which)
         ax.fill_between(grid, mean - 1.645 * s, mean + 1.645 * s, color="C0", alpha=0.3, label="90 % band")
@@ -299,10 +306,9 @@ def command_map_figure(unc, verdict):
         for a, b in verdict["rare_commands"][cmd]:
             ax.axvspan(a, b, color="0.85", zorder=0)
             axh.axvspan(a, b, color="0.85", zorder=0)
-        ax.set(ylabel=f"actual {'speed' if which == 0 else 'turn rate'} ({unit})",
-               title=f"{'Speed' if which == 0 else 'Turn'} map (grey: rarely driven)")
+        ax.set(ylabel=f"actual {what} ({unit})", title=f"{what.split()[0].capitalize()} map (grey: rarely driven)")
         ax.legend(fontsize=8)
-        axh.hist(unc.log.controls[:, which], bins=40, color="0.4")
+        axh.hist(unc.log.controls[:, col], bins=40, color="0.4")
         axh.set(xlabel=f"command {cmd} ({unit})", ylabel="steps")
     fig.tight_layout()
     return fig
@@ -311,7 +317,9 @@ def command_map_figure(unc, verdict):
 def _command_table(unc) -> str:
     cm = unc.model.command
     rows = []
-    for cmd, coef, std, scale in (("v", cm.v_coef, cm.v_std, cm.scale[0]), ("w", cm.w_coef, cm.w_std, cm.scale[1])):
+    for cmd, col, _, _ in cm.maps:
+        coef, std = cm.coefficients(cmd)
+        scale = cm.scale[col]
         for i, (c, sd) in enumerate(zip(coef, std)):
             rows.append(f"<tr><td>{cmd}</td><td>({cmd} / {scale:.3g})^{i}</td>"
                         f"<td>{c:+.4f} &plusmn; {1.645 * sd:.4f}</td></tr>")

@@ -1,5 +1,5 @@
-"""Continuous commands: forward and turn velocity as polynomials of the commands ``v, w``
-(:mod:`casm_graph.models.command_model`), their coefficients the parameters.
+"""Continuous commands: forward and turn velocity (and sideways, for ``vx, vy, w``) as polynomials of the
+commands (:mod:`casm_graph.models.command_model`), their coefficients the parameters.
 
 Knots every ``knot_dt`` seconds and at every sighting's step; consecutive knots are joined by one
 :mod:`factors.command` factor over the command steps between them (padded to a common length). Motion
@@ -10,7 +10,7 @@ start knot is in.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -91,13 +91,16 @@ class CommandPoly(ActionPart):
     # 1e-4 m or rad per step: a robot that never slips sideways drove the lateral level to 1e-13, and the
     # information matrix singular.
     noise_rules = NoiseRules(huber_efficiency=False, lateral_at_most_forward=True, floor=1e-4)
+    #   (an omnidirectional robot, commanded sideways, may slip sideways more than forward)
 
     def __init__(self, log, model: Model, lay: Layout, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
         super().__init__(log, model, lay, motion_effects, ls_index, effects)
         cm = model.command
-        bv, bw = cm.basis(log.controls, log.dt)
-        self.Bv, self.Bw = bv[lay.seg_idx], bw[lay.seg_idx]
-        self.nv = bv.shape[1]
+        bv, by, bw = cm.basis(log.controls, log.dt)
+        self.Bv, self.By, self.Bw = bv[lay.seg_idx], by[lay.seg_idx], bw[lay.seg_idx]
+        self.nv, self.ny = bv.shape[1], by.shape[1]
+        if self.ny:
+            self.noise_rules = replace(self.noise_rules, lateral_at_most_forward=False)
         self.n = len(cm.params)
         self.shape = (self.n,)
         self.seg_region = None
@@ -110,9 +113,10 @@ class CommandPoly(ActionPart):
             idx = lay.seg_idx
             self.m_ctx = {"t": t0[idx].ravel(), "since": (t0 - t0[run0])[idx].ravel(),
                           "dt": np.where(lay.seg_dt > 0, lay.seg_dt, float(np.median(log.dt))).ravel()}
-            self.Bv_prev, self.Bw_prev = bv[prev][idx], bw[prev][idx]
-        both = sighting_means(log, np.hstack([bv, bw]), velocity_window(model, effects))
-        self.Bv_obs, self.Bw_obs = both[:, :self.nv], both[:, self.nv:]
+            self.Bv_prev, self.By_prev, self.Bw_prev = bv[prev][idx], by[prev][idx], bw[prev][idx]
+        every = sighting_means(log, np.hstack([bv, by, bw]), velocity_window(model, effects))
+        self.Bv_obs, self.By_obs, self.Bw_obs = (every[:, :self.nv], every[:, self.nv:self.nv + self.ny],
+                                                 every[:, self.nv + self.ny:])
 
     @classmethod
     def default_layout(cls, log, model: Model) -> Layout:
@@ -121,8 +125,10 @@ class CommandPoly(ActionPart):
 
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         cm = model.command
-        nominal = for_commands(self.log.controls, cm.n_v - 1, len(cm.w_coef) - 1, gain=1.0)
-        return nominal.params, PARAM_PRIOR_REL * np.repeat(cm.scale, (cm.n_v, len(cm.w_coef)))
+        nv, ny, nw = cm.sizes
+        nominal = for_commands(self.log.controls, nv - 1, nw - 1, gain=1.0, y_degree=ny - 1)
+        return nominal.params, PARAM_PRIOR_REL * np.concatenate([np.full(sl.stop - sl.start, cm.scale[col])
+                                                                 for _, col, _, sl in cm.maps])
 
     def motion_sigma(self, model: Model, poses: np.ndarray | None) -> np.ndarray:
         lay, log = self.lay, self.log
@@ -168,7 +174,7 @@ class CommandPoly(ActionPart):
 
     def motion_covariates(self, poses, x, theta, command_change):
         lay, log = self.lay, self.log
-        v = self._velocities(np.asarray(x, float), self.Bv, self.Bw)
+        v = self._velocities(np.asarray(x, float), self.Bv, self.By, self.Bw)
         seg_v = np.sum(v * lay.seg_dt[..., None], axis=1) / np.maximum(lay.seg_time, 1e-9)[:, None]
         t = log.pose_times[lay.knots[:-1]] - log.t[0]
         accel = command_acceleration(seg_v, t + 0.5 * lay.seg_time)
@@ -177,15 +183,16 @@ class CommandPoly(ActionPart):
                "acceleration": accel[:, 0], "turn_acceleration": accel[:, 2]}
         return t, cov, seg_v, lay.seg_time
 
-    def _velocities(self, p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray) -> np.ndarray:
-        """(..., 3) body velocity of basis rows under map coefficients ``p`` (no sideways motion)."""
-        v = Bv @ p[:self.nv]
-        return np.stack([v, np.zeros_like(v), Bw @ p[self.nv:self.n]], axis=-1)
+    def _velocities(self, p: np.ndarray, Bv: np.ndarray, By: np.ndarray, Bw: np.ndarray) -> np.ndarray:
+        """(..., 3) body velocity of basis rows under map coefficients ``p`` (sideways 0 without a ``vy`` map)."""
+        nv, ny = self.nv, self.ny
+        v = Bv @ p[:nv]
+        return np.stack([v, By @ p[nv:nv + ny] if ny else np.zeros_like(v), Bw @ p[nv + ny:self.n]], axis=-1)
 
     def _slot_velocities(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
         """(S, kmax, 3) velocity of every step of every segment under map ``p`` and the motion effects at
         ``theta``, each step's context pose placed along the segment by the map alone from its ``start`` pose."""
-        v0 = self._velocities(p, self.Bv, self.Bw)
+        v0 = self._velocities(p, self.Bv, self.By, self.Bw)
         if not self.motion_effects:
             return v0
         _, rel = factors.command.integrate(v0, self.lay.seg_dt)
@@ -193,7 +200,7 @@ class CommandPoly(ActionPart):
         pose = np.stack([start[:, 0:1] + c * rel[..., 0] - s * rel[..., 1],
                          start[:, 1:2] + s * rel[..., 0] + c * rel[..., 1], start[:, 2:3] + rel[..., 2]], axis=-1)
         fn = motion_function(self.motion_effects, self.m_ctx, theta)
-        return fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.Bw_prev).reshape(-1, 3),
+        return fn(v0.reshape(-1, 3), self._velocities(p, self.Bv_prev, self.By_prev, self.Bw_prev).reshape(-1, 3),
                   pose.reshape(-1, 3)).reshape(v0.shape)
 
     def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -210,7 +217,7 @@ class CommandPoly(ActionPart):
     def motion(self, poses, x, theta, jacobians=True, parameters=True):
         P = poses
         if not self.motion_effects:
-            e, (Ha, Hb, Hx) = factors.command.error(P[:-1], P[1:], x, self.Bv, self.Bw, self.lay.seg_dt)
+            e, (Ha, Hb, Hx) = factors.command.error(P[:-1], P[1:], x, self.Bv, self.Bw, self.lay.seg_dt, self.By)
             return e, [Ha, Hb], (Hx if parameters else None), None
         rel, Ha, Hb = factors.base.relative(P[:-1], P[1:])
         d = self._segment_motion(x, theta, P[:-1])
@@ -243,7 +250,8 @@ class CommandPoly(ActionPart):
         return e, [Ha, Hb], Hx, Ht
 
     def sighting_velocity(self, poses, x, theta):
-        v = self._velocities(np.asarray(x, float), self.Bv_obs, self.Bw_obs)
+        nv, ny = self.nv, self.ny
+        v = self._velocities(np.asarray(x, float), self.Bv_obs, self.By_obs, self.Bw_obs)
         dv = np.zeros((len(v), 3, self.n))
-        dv[:, 0, :self.nv], dv[:, 2, self.nv:] = self.Bv_obs, self.Bw_obs
+        dv[:, 0, :nv], dv[:, 1, nv:nv + ny], dv[:, 2, nv + ny:] = self.Bv_obs, self.By_obs, self.Bw_obs
         return v, dv

@@ -1,4 +1,4 @@
-"""Calibrating a command map (continuous ``v,w`` commands): a zero map, the window start at the nominal map, the
+"""Calibrating a command map (continuous ``v,w`` or ``vx,vy,w`` commands): a zero map, the window start at the nominal map, the
 coarse knots of :mod:`casm_graph.fit.continuous`; effects (profiled, regional noise, hooked) fitted on the graph,
 from the fit of the method asked for, as an action table's are."""
 from __future__ import annotations
@@ -32,8 +32,10 @@ class CommandKind(ActionKind):
             base = METHODS[options.method](log, start, seed=options.seed, progress=progress)
             if not classes:
                 return base
+        curve = {"max_sensor_degree": options.max_sensor_degree,
+                 "free_basis": options.sensor_basis == "auto" and options.max_sensor_degree > options.sensor_degree}
         if classes:
             return continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
                                                progress=progress, regions=Regions.parse(options.regions, log),
-                                               options=options.command_graph, base=base)
-        return continuous.fit(log, start, seed=options.seed, progress=progress, options=options.command_graph)
+                                               options=options.command_graph, base=base, **curve)
+        return continuous.fit(log, start, seed=options.seed, progress=progress, options=options.command_graph, **curve)
