@@ -38,6 +38,7 @@ from casm_graph.models.command_model import COMMANDS, for_commands
 from casm_graph.models.effects import of_model
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import PAPER_MOTION_NOISE, PAPER_START_BEARING_SIGMA, PAPER_START_READING_SIGMA, Model
+from factors.reading import fit_curve
 
 MIN_SIGHTINGS = 10
 INIT_WINDOW = 5.0            # s: the shortest log the start's windows can place
@@ -186,7 +187,7 @@ def identity_model(log: Log, like: Model) -> Model:
     poly[1] = 1.0
     nv, ny, nw = like.command.sizes
     cm = for_commands(log.controls, nv - 1, nw - 1, gain=1.0, y_degree=ny - 1)
-    return like.with_(command=cm, reading_poly=poly, effects={})
+    return like.with_(command=cm, reading_poly=poly, reading_basis="distance", effects={})
 
 
 def noise_levels(model: Model) -> np.ndarray:
@@ -326,10 +327,31 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log, options.sensor_curve)):
         return first
     progress.stage("the sensor curve in 1/d", None)
-    other = _fit(log, start.with_(reading_basis="inverse_distance"), seed, progress, marginals, start_options,
-                 options, max_sensor_degree)
+    other = in_basis(log, first, "inverse_distance", len(start.reading_poly) - 1, seed, progress, marginals, options,
+                     max_sensor_degree)
     return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)),
                         options.sensor_curve)
+
+
+def in_basis(log: Log, first: Fit, basis: str, degree: int, seed: int, progress: Progress, marginals: bool,
+             o: CommandGraphOptions, max_sensor_degree: int) -> Fit:
+    """``first`` refitted with its sensor curve in ``basis``: the curve of ``degree`` regressed on the readings at
+    ``first``'s distances (those within ``o.sensor_curve.tail`` robust sigmas), then the fine graph from ``first``'s
+    poses. Warm, unlike the action table's fresh start in 1/d: on continuous logs that start put a sighting on its
+    landmark (0.05 m off, the standoff) on two of three omnidirectional worlds, 0.43 m from the truth on one."""
+    t0 = time.perf_counter()
+    ok = np.isfinite(log.obs_reading)
+    d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - first.poses[log.obs_step[ok], :2]).T)
+    r = log.obs_reading[ok]
+    res = r - first.model.reading(d)
+    keep = np.abs(res) <= o.sensor_curve.tail * 1.4826 * np.median(np.abs(res))
+    model = first.model.with_(reading_poly=fit_curve(d[keep], r[keep], degree, basis), reading_basis=basis)
+    out = _full_graph(log, model, first.poses, seed, progress, marginals, o, max_sensor_degree, [], [], 0, t0)
+    out.model.fit.update({k: first.model.fit[k] for k in ("start_options", "start_slopes") if k in first.model.fit},
+                         iterations=first.iterations + out.iterations,
+                         seconds=round(first.model.fit.get("seconds", 0) + out.model.fit["seconds"], 3))
+    return replace(out, cost=first.cost + out.cost, stages=first.stages + out.stages,
+                   iterations=first.iterations + out.iterations, notes={**first.notes, **out.notes})
 
 
 def sighting_log_likelihood(log: Log, fit: Fit) -> float:
@@ -348,22 +370,38 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
     start_options = start_options or W.WindowOptions()
     co = coarse_start(log, start, seed, progress, start_options, o)
     model, poses, trace, stages, it1 = co.model, co.poses, co.trace, co.stages, co.iterations
-    starts, best = co.starts, co.best
     full = layout(log, o.full_knot_dt)
-    it2 = 0
     if RMN.RegionalMotionNoise.name in model.effects:
         progress.stage("regional noise", o.regional_rounds)
         for r in range(o.regional_rounds):
             before = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
             model, kp, _, _, its, _ = optimise_rounds(log, full, model, poses[full.knots], 1, o.full_iterations,
                                                       seed + 200 + r, "regional", trace, stages, progress)
-            it2 += its
+            it1 += its
             poses = fill_in(log, model, full.knots, kp)
             after = RMN.from_entry(model.effects[RMN.RegionalMotionNoise.name])[1]
             if np.max(np.abs(np.log(after / before))) < o.regional_tol:
                 break
+    starts, best = co.starts, co.best
+    out = _full_graph(log, model, poses, seed, progress, marginals, o, max_sensor_degree, trace, stages, it1, t0)
+    out.model.fit.update(start_options=W.options_json(start_options),
+                         start_slopes=[[round(s.slope, 6), round(h, 1)] for s, h in zip(starts, co.held)
+                                       if np.isfinite(s.slope)])
+    out.notes.update({"hypothesis": list(starts[0].hypothesis), "start_log_evidence": starts[0].log_evidence,
+                      "start_slope": starts[best].slope, "windows_placed": starts[best].windows_placed,
+                      "start_model": starts[best].model, "start_poses": starts[best].poses})
+    return out
+
+
+def _full_graph(log: Log, model: Model, poses: np.ndarray, seed: int, progress: Progress, marginals: bool,
+                o: CommandGraphOptions, max_sensor_degree: int, trace: list, stages: list, iterations: int,
+                t0: float) -> Fit:
+    """The fine graph's rounds from ``model`` and ``poses`` (T+1, 3), the sensor curve's degree raised when the
+    readings demand (up to ``max_sensor_degree``), marginals: the end of every calibration."""
+    full = layout(log, o.full_knot_dt)
     asked = len(model.reading_poly) - 1
     progress.stage("full graph", o.full_rounds)
+    it2 = 0
     for attempt in range(2):
         model, kp, problem, st, its, converged = optimise_rounds(
             log, full, model, poses[full.knots], o.full_rounds, o.full_iterations, seed + 100, "full", trace, stages,
@@ -385,22 +423,15 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
         model, pose_std, _ = with_marginals(log, full, kp, problem, st, model)
     ll = problem_log_likelihood(problem, st, model)
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
-                        fit={"method": "graph", "iterations": it1 + it2,
+                        fit={"method": "graph", "iterations": iterations + it2,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": ll,
                              "converged": converged, "knot_dt": o.full_knot_dt,
-                             "start_options": W.options_json(start_options),
-                             "start_slopes": [[round(s.slope, 6), round(h, 1)] for s, h in zip(starts, co.held)
-                                              if np.isfinite(s.slope)],
                              "outliers_set_aside": {"reading": int((~sel & ~np.isnan(log.obs_reading)).sum()),
                                                     "bearing": int((~problem.b_sel & ~np.isnan(log.obs_bearing)).sum())},
                              "sensor_degree": {"asked": asked, "fitted": len(model.reading_poly) - 1,
                                                "basis": model.reading_basis}})
-    return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=it1 + it2,
-               converged=converged, log_likelihood=ll,
-               notes={"hypothesis": list(starts[0].hypothesis), "start_log_evidence": starts[0].log_evidence,
-                      "start_slope": starts[best].slope,
-                      "windows_placed": starts[best].windows_placed, "start_model": starts[best].model,
-                      "start_poses": starts[best].poses, "knots": full.knots})
+    return Fit(model=model, poses=poses, pose_std=pose_std, cost=trace, stages=stages, iterations=iterations + it2,
+               converged=converged, log_likelihood=ll, notes={"knots": full.knots})
 
 
 def with_marginals(log: Log, lay: Layout, knot_poses: np.ndarray, problem: Problem, st: State, model: Model):
@@ -655,15 +686,6 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
                       "hooked_effects": [type(e) for e in effects]})
 
 
-def with_curve_of(start: Model, fitted: Model) -> Model:
-    """``start`` with the degree and variable of ``fitted``'s sensor curve (its coefficients the start's own)."""
-    if (fitted.reading_basis, len(fitted.reading_poly)) == (start.reading_basis, len(start.reading_poly)):
-        return start
-    poly = np.zeros(len(fitted.reading_poly))
-    poly[0] = start.reading_poly[0]
-    return start.with_(reading_poly=poly, reading_basis=fitted.reading_basis)
-
-
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,
                      progress: Progress | None = None, marginals: bool = True,
                      regions: RMN.Regions | None = None, options: CommandGraphOptions = DEFAULTS,
@@ -684,10 +706,10 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     profiled = [n for n in named if n in EFFECTS]
     noisy = [n for n in named if n in NOISE_EFFECTS]
     hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
-    if base is None:         # the sensor curve is chosen here (``max_sensor_degree``, ``free_basis``) and kept after
+    if base is None:         # the sensor curve's variable is chosen here and kept; its degree may rise in every fit
         out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options,
                   max_sensor_degree=max_sensor_degree, free_basis=free_basis)
-        start = with_curve_of(start, out.model)
+        start = start.with_(reading_basis=out.model.reading_basis)
     else:                    # settled on the full graph first: a profile reads the poses it starts from
         out = fit_hooked(log, base, [], seed=seed, progress=progress, marginals=False, options=options)
     warm = {}
@@ -701,11 +723,13 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         profiles.append(prof)
         start = with_effect(start, name, prof.value, prof.order)
         out = fit(log, start, seed=seed, progress=progress,
-                  marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked, options=options)
+                  marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked, options=options,
+                  max_sensor_degree=max_sensor_degree)
     if noisy:
         before = out.log_likelihood
         start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked, options=options)
+        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked, options=options,
+                  max_sensor_degree=max_sensor_degree)
         out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
     if hooked:
         out = replace(out, model=out.model.with_(effects={**out.model.effects, **warm}))
