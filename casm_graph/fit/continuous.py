@@ -706,10 +706,10 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     profiled = [n for n in named if n in EFFECTS]
     noisy = [n for n in named if n in NOISE_EFFECTS]
     hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
-    if base is None:         # the sensor curve's variable is chosen here and kept; its degree may rise in every fit
+    curve = {"max_sensor_degree": max_sensor_degree, "free_basis": free_basis}   # chosen as the base's, in every fit
+    if base is None:
         out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options,
-                  max_sensor_degree=max_sensor_degree, free_basis=free_basis)
-        start = start.with_(reading_basis=out.model.reading_basis)
+                  **curve)
     else:                    # settled on the full graph first: a profile reads the poses it starts from
         out = fit_hooked(log, base, [], seed=seed, progress=progress, marginals=False, options=options)
     warm = {}
@@ -724,12 +724,12 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         start = with_effect(start, name, prof.value, prof.order)
         out = fit(log, start, seed=seed, progress=progress,
                   marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked, options=options,
-                  max_sensor_degree=max_sensor_degree)
+                  **curve)
     if noisy:
         before = out.log_likelihood
         start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
         out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked, options=options,
-                  max_sensor_degree=max_sensor_degree)
+                  **curve)
         out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
     if hooked:
         out = replace(out, model=out.model.with_(effects={**out.model.effects, **warm}))

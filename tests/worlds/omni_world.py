@@ -201,6 +201,15 @@ def simulate(n_steps, world, eff, rng):
     return cmds, poses
 
 
+def true_velocities(truth, commands):
+    """Steady-state body velocity (forward, lateral, turn) of each command row (n, 3) under the world's motion
+    model as world_truth.json records it (no slip, no effect)."""
+    g, o, q = truth["motion"]["gains"], truth["motion"]["offsets"], truth["motion"]["qx"]
+    u = np.asarray(commands, float)
+    return np.column_stack([g["forward"] * u[:, 0] + o["forward"] + q * u[:, 0] * np.abs(u[:, 0]),
+                            g["lateral"] * u[:, 1] + o["lateral"], g["turn"] * u[:, 2] + o["turn"]])
+
+
 def sense(n_steps, world, eff, poses, rng):
     """Camera sightings stamped at command step times (pose taken at t - delta)."""
     _, ids, lms, _, sen, _ = world
