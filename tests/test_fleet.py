@@ -16,7 +16,7 @@ import pytest
 
 from casm_graph import cli
 from casm_graph.analysis import drift
-from casm_graph.pipeline.fleet import DaskPool, calibrate_fleet, client_for, find_bundles, robot_and_time
+from casm_graph.pipeline.fleet import DaskPool, calibrate_fleet, client_for, find_bundles, model_row, robot_and_time
 from casm_graph.sim.fleet import simulate_fleet
 
 from .conftest import FULL
@@ -290,3 +290,12 @@ def test_fleet_drift_flags_exactly_the_wearing_robots(tmp_path):
         line = next(t for t in data["drift"]["summary"] if t.startswith(r + ": velocities scaled by"))
         k = float(line.split("scaled by ")[1].split()[0])
         assert k == pytest.approx(1 - truth["wear_per_day"] * (days - 1), abs=0.04)
+
+
+def test_drift_names_a_curves_coefficients_by_their_variable():
+    """Coefficients of a curve in d and of one in 1/d are not the same figure: drift and the fleet table say which."""
+    m = {"sensor_model": {"reading_poly": [1.0, 2.0], "reading_poly_std": [0.1, 0.1], "reading_basis": "inverse_distance"}}
+    assert {"reading c0 (inverse_distance)", "reading c1 (inverse_distance)"} <= set(drift.parameters(m))
+    m["sensor_model"]["reading_basis"] = "distance"
+    assert {"reading c0", "reading c1"} <= set(drift.parameters(m))
+    assert model_row(m)["reading_basis"] == "distance"

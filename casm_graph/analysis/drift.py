@@ -129,8 +129,9 @@ def parameters(model: dict) -> dict[str, dict]:
     sm = model.get("sensor_model", {}) or {}
     poly = sm.get("reading_poly") or []
     psd = sm.get("reading_poly_std") or [None] * len(poly)
+    basis = sm.get("reading_basis", "distance")     # coefficients in different variables are not the same figure
     for i, c in enumerate(poly):
-        put(f"reading c{i}", "sensor", c, psd[i] if i < len(psd) else None)
+        put(f"reading c{i}" + ("" if basis == "distance" else f" ({basis})"), "sensor", c, psd[i] if i < len(psd) else None)
     put("reading_sigma", "noise", sm.get("reading_sigma"))
     put("bearing_sigma", "noise", sm.get("bearing_sigma"))
     for ax, v in zip(("x", "y", "theta"), model.get("motion_noise") or []):

@@ -5,7 +5,8 @@ command), action tables the attempted velocity of each action (actions.csv). The
 
 1. where readings exist, the sensor hypothesis (reading = k d**p) by the evidence of the grid smoother
    of :func:`casm_graph.fit.locate.locate`; a range (p = +1) starts as the line reading = k d, its
-   slope chosen among ``slope_factors`` by how well the windows agree;
+   slope chosen among ``slope_factors`` by how well the windows agree; any other power (an apparent
+   size, p = -1) gives each sighting's distance through k d**p itself;
 2. each window with three or more sightings is placed at every candidate start heading, its sightings
    along the window's dead-reckoned path: range and bearing (:func:`range_bearing_fits`), ranges only
    (:func:`window_pose_ranges`, multilateration; the heading shows through the motion alone) or

@@ -222,6 +222,7 @@ def model_row(model: dict) -> dict:
     row["bearing_sigma"] = _f(sm.get("bearing_sigma"))
     for ax, v in zip(("x", "y", "theta"), model.get("motion_noise") or []):
         row[f"motion_noise_{ax}"] = _f(v)
+    row["reading_basis"] = sm.get("reading_basis", "distance")      # the variable the coefficients are in
     for i, c in enumerate(sm.get("reading_poly") or []):
         row[f"reading_c{i}"] = _f(c)
     row["log_likelihood"] = _f(fit.get("log_likelihood"))
@@ -327,7 +328,7 @@ def columns(rows: list[dict]) -> list[str]:
         for k in r:
             if k not in BASE_COLUMNS and k not in TAIL_COLUMNS and k not in extra:
                 extra.append(k)
-    extra.sort(key=lambda k: (not k.startswith("reading_c"), k))
+    extra.sort(key=lambda k: (not k.startswith("reading_"), k))
     return [*BASE_COLUMNS, *extra, *TAIL_COLUMNS]
 
 
