@@ -25,7 +25,7 @@ from gtsam.symbol_shorthand import X
 
 from casm_graph.fit import turns
 from casm_graph.fit import windows as W
-from casm_graph.fit.residuals import sighting_residuals
+from casm_graph.fit.residuals import distances, sighting_residuals
 from casm_graph.fit.result import Fit, Progress
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
@@ -341,7 +341,7 @@ def in_basis(log: Log, first: Fit, basis: str, degree: int, seed: int, progress:
     landmark (0.05 m off, the standoff) on two of three omnidirectional worlds, 0.43 m from the truth on one."""
     t0 = time.perf_counter()
     ok = np.isfinite(log.obs_reading)
-    d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - first.poses[log.obs_step[ok], :2]).T)
+    d = distances(first.poses[log.obs_step], log)[ok]
     r = log.obs_reading[ok]
     res = r - first.model.reading(d)
     keep = np.abs(res) <= o.sensor_curve.tail * 1.4826 * np.median(np.abs(res))
@@ -409,7 +409,7 @@ def _full_graph(log: Log, model: Model, poses: np.ndarray, seed: int, progress: 
         it2 += its
         poses = fill_in(log, model, full.knots, kp)
         sel = problem.r_sel
-        d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[sel]
+        d = distances(poses[log.obs_step], log)[sel]
         better = None if attempt else choose_curve(d, log.obs_reading[sel], model.reading_poly, model.reading_sigma,
                                                    max_sensor_degree, model.reading_basis, o.sensor_curve)
         if better is None:
