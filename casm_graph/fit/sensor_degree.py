@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from casm_graph.fit.residuals import distances
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
 from factors.reading import BASES, curve, fit_curve
@@ -88,7 +89,7 @@ def better_curve(log: Log, first, other, scores: tuple[float, float], options: S
     sightings); else ``first``. The choice is recorded in ``fit.sensor_degree`` (``tried``: each curve's score)."""
     ok = np.isfinite(log.obs_reading)
     extra = len(other.model.reading_poly) - len(first.model.reading_poly)
-    d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - other.poses[log.obs_step[ok], :2]).T)
+    d = distances(other.poses[log.obs_step], log)[ok]
     moved = np.sqrt(np.mean((other.model.reading(d) - first.model.reading(d)) ** 2))
     take = (scores[1] - options.margin - 0.5 * extra * np.log(max(int(ok.sum()), 2)) > scores[0]
             and moved > options.material * min(first.model.reading_sigma, other.model.reading_sigma))

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from casm_graph.fit.locate import grid_cell, locate
+from casm_graph.fit.residuals import distances
 from casm_graph.graph import robust
 from casm_graph.graph import table as G
 from casm_graph.io.log import Log, wrap
@@ -75,7 +76,7 @@ def curve_at(log: Log, poses_at_obs: np.ndarray, degree: int, basis: str) -> tup
     """The sensor curve in ``basis`` (robust fit) through the readings at their distances from
     ``poses_at_obs``, and the readings' residuals: a start's curve in the basis the user asked."""
     ok = np.isfinite(log.obs_reading)
-    d = np.hypot(*(log.landmark_xy[log.landmark_index[ok]] - poses_at_obs[ok, :2]).T)
+    d = distances(poses_at_obs, log)[ok]
     poly = robust.polyfit(d, log.obs_reading[ok], degree, basis)
     return poly, log.obs_reading[ok] - curve(d, poly, basis)
 

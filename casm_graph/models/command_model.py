@@ -21,10 +21,17 @@ import numpy as np
 from numba import njit
 
 from casm_graph.io.log import LogError
+from casm_graph.models.validate import MAX_POLY, Where, one_line
 from casm_graph.models.velocity_table import VelocityTable, json_number
 
 KIND = "command_poly"
 COMMANDS = (("v", "w"), ("vx", "vy", "w"))      # the command columns a map can read: wheeled, omnidirectional
+AXIS_WORDS = (("speed", "m/s"), ("sideways speed", "m/s"), ("turn rate", "rad/s"))   # what a map gives, by body axis
+
+
+def map_name(axis: int) -> str:
+    """The short name of the map onto body axis ``axis`` in reports: speed map, sideways map, turn map."""
+    return AXIS_WORDS[axis][0].split()[0] + " map"
 
 
 @njit(cache=True)
@@ -227,6 +234,30 @@ class CommandModel:
         """A command map's model.json entry in brief, for a fleet's table: its coefficients in the command's units."""
         return {f"{c}_coef_{i}": v for c, (coef, _) in CommandModel.coefficients_in_units(am).items()
                 for i, v in enumerate(coef)}
+
+    @classmethod
+    def read(cls, w: Where, am: dict) -> "CommandModel":
+        """The map of model.json's ``action_model`` entry ``am``, each field checked (``w`` names the file)."""
+        scale = w.obj(am.get("scale"), "action_model.scale")
+        coef = w.obj(am.get("coefficients"), "action_model.coefficients")
+        std = w.obj(am.get("std") or {}, "action_model.std")
+        rng = w.obj(am.get("command_range") or {}, "action_model.command_range")
+        names = am.get("commands", ["v", "w"])
+        if not isinstance(names, list) or tuple(names) not in COMMANDS:
+            w.fail("action_model.commands", f"is {one_line(repr(names))[:40]}, expected "
+                   + " or ".join(repr(list(c)) for c in COMMANDS))
+        for c in names:
+            w.num(scale.get(c), f"action_model.scale.{c}", positive=True)
+            n = len(w.vec(coef.get(c), f"action_model.coefficients.{c}", max_len=MAX_POLY))
+            if std.get(c) is not None:
+                w.vec(std[c], f"action_model.std.{c}", n=n, nullable=True, nonneg=True)
+            if c in rng:
+                w.vec(rng[c], f"action_model.command_range.{c}", n=2)
+        if "lag" in am:
+            w.num(am["lag"], "action_model.lag", nonneg=True)
+        if am.get("lag_order", 1) not in (1, 2):
+            w.fail("action_model.lag_order", f"is {one_line(repr(am['lag_order']))[:40]}, expected 1 or 2")
+        return cls.from_json(am)
 
     @classmethod
     def from_json(cls, am: dict) -> "CommandModel":

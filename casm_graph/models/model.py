@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import json
-import math
-import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -12,8 +10,9 @@ import numpy as np
 from casm_graph.io.log import Log, LogError
 from factors.reading import BASES, curve, features
 from casm_graph.io.output import strict
-from casm_graph.models.command_model import COMMANDS, CommandModel
+from casm_graph.models.command_model import CommandModel
 from casm_graph.models.effects import REGISTRY
+from casm_graph.models.validate import COEFFICIENT_SPAN, MAX_POLY, SIGMA_SPAN, Where, no_constant, one_line
 from casm_graph.models.velocity_table import VelocityTable
 
 SCHEMA = "casm-graph/model/1"
@@ -156,14 +155,14 @@ class Model:
     def from_json(cls, data, source: str = "model.json") -> "Model":
         """The model of a model.json document; anything malformed is one :class:`LogError` line."""
         try:
-            return _from_json(cls, data, _Where(source))
+            return _from_json(cls, data, Where(source))
         except LogError:
             raise
         except RecursionError:
             raise LogError(f"{source}: nested too deeply to be a casm-graph model") from None
         except (KeyError, TypeError, ValueError, AttributeError, IndexError, OverflowError) as exc:
             raise LogError(f"{source}: not a casm-graph model ({type(exc).__name__}: "
-                           f"{_one_line(str(exc))})") from None
+                           f"{one_line(str(exc))})") from None
 
     @classmethod
     def load(cls, path: str | Path) -> "Model":
@@ -178,141 +177,19 @@ class Model:
         except UnicodeDecodeError as exc:
             raise LogError(f"{p.name}: not a UTF-8 text file ({exc.reason} at byte {exc.start})") from None
         try:
-            data = json.loads(text, parse_constant=_no_constant)
+            data = json.loads(text, parse_constant=no_constant)
         except json.JSONDecodeError as exc:
             raise LogError(f"{p.name}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
         except RecursionError:
             raise LogError(f"{p.name}: not valid JSON for a model (nested too deeply)") from None
         except ValueError as exc:            # NaN/Infinity, or an integer too long to convert
-            raise LogError(f"{p.name}: not valid JSON ({_one_line(str(exc))})") from None
+            raise LogError(f"{p.name}: not valid JSON ({one_line(str(exc))})") from None
         return cls.from_json(data, p.name)
 
 
 # --------------------------------------------------------------------------- reading model.json
 
-MAX_NESTING = 20            # effects and fit entries deeper than this are not a model's
-MAX_POLY = 7                # reading_poly: degree 6 at most (calibrate's --sensor-degree)
-SIGMA_SPAN = (1e-12, 1e9)   # noise levels: smaller is no noise at float precision, larger no sensor
-COEFFICIENT_SPAN = (0.0, 1e12)     # sensor polynomial coefficients: beyond, the curve overflows
-_ID = re.compile(r"[+-]?[0-9]+", re.ASCII)
-
-
-def _no_constant(name: str):
-    raise ValueError(f"{name} is not valid JSON (write null for an unknown value)")
-
-
-def _one_line(s: str) -> str:
-    s = " ".join(s.split())
-    return s if len(s) <= 120 else s[:120] + "..."
-
-
-def _kind(x) -> str:
-    return {dict: "an object", list: "a list", str: "a string", bool: "true/false",
-            type(None): "null"}.get(type(x), "a number")
-
-
-def _expected(x, what: str) -> str:
-    if x is None:
-        return f"is missing or null (expected {what})"
-    return f"must be {what} (got {_kind(x)})"
-
-
-class _Where:
-    """The file name, for messages."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, where: str, what: str):
-        raise LogError(f"{self.source}: {where} {what}")
-
-    def obj(self, x, where: str) -> dict:
-        if not isinstance(x, dict):
-            self.fail(where, _expected(x, "a JSON object"))
-        return x
-
-    def num(self, x, where: str, positive: bool = False, nonneg: bool = False,
-            span: tuple[float, float] | None = None) -> float:
-        if isinstance(x, bool) or not isinstance(x, (int, float)):
-            self.fail(where, _expected(x, "a number"))
-        try:
-            v = float(x)
-        except OverflowError:
-            v = math.inf
-        if not math.isfinite(v):
-            self.fail(where, "must be a finite number")
-        if positive and not v > 0:
-            self.fail(where, f"must be positive (got {v:g})")
-        if nonneg and v < 0:
-            self.fail(where, f"must not be negative (got {v:g})")
-        if span is not None and v != 0 and not span[0] <= abs(v) <= span[1]:
-            self.fail(where, f"is {v:g}, outside what its units allow ({span[0]:g} to {span[1]:g} in size)")
-        return v
-
-    def vec(self, x, where: str, n: int | None = None, nullable: bool = False, nonneg: bool = False,
-            positive: bool = False, max_len: int | None = None, span: tuple[float, float] | None = None) -> np.ndarray:
-        """A list of finite numbers (null read as NaN where ``nullable``) of length ``n`` when given."""
-        if not isinstance(x, list):
-            self.fail(where, _expected(x, "a list of numbers"))
-        if n is not None and len(x) != n:
-            self.fail(where, f"must hold {n} numbers (got {len(x)})")
-        if not x or (max_len is not None and len(x) > max_len):
-            self.fail(where, f"must hold 1 to {max_len or 'any'} numbers (got {len(x)})")
-        return np.array([np.nan if (v is None and nullable) else
-                         self.num(v, f"{where}[{i}]", positive=positive, nonneg=nonneg, span=span)
-                         for i, v in enumerate(x)], float)
-
-    def plain(self, x, where: str, depth: int = 0) -> None:
-        """Free-form content (effects, fit): finite numbers, strings, true/false, null, lists, objects."""
-        if depth > MAX_NESTING:
-            self.fail(where, f"is nested more than {MAX_NESTING} levels deep")
-        if isinstance(x, dict):
-            for k, v in x.items():
-                self.plain(v, f"{where}.{k}", depth + 1)
-        elif isinstance(x, list):
-            for i, v in enumerate(x):
-                self.plain(v, f"{where}[{i}]", depth + 1)
-        elif isinstance(x, (int, float)) and not isinstance(x, bool):
-            self.num(x, where)
-
-
-def _action_ids(w: _Where, keys, where: str) -> list[tuple[int, str]]:
-    out, seen = [], set()
-    for k in keys:
-        if not _ID.fullmatch(k) or abs(int(k)) > 2 ** 63 - 1:
-            w.fail(where, f"has key {k[:40]!r}, which is not an integer action id")
-        a = int(k)
-        if a in seen:
-            w.fail(where, f"names action {a} twice")
-        seen.add(a)
-        out.append((a, k))
-    return sorted(out)
-
-
-def _command_model(w: _Where, am: dict):
-    scale = w.obj(am.get("scale"), "action_model.scale")
-    coef = w.obj(am.get("coefficients"), "action_model.coefficients")
-    std = w.obj(am.get("std") or {}, "action_model.std")
-    rng = w.obj(am.get("command_range") or {}, "action_model.command_range")
-    names = am.get("commands", ["v", "w"])
-    if not isinstance(names, list) or tuple(names) not in COMMANDS:
-        w.fail("action_model.commands", f"is {_one_line(repr(names))[:40]}, expected "
-               + " or ".join(repr(list(c)) for c in COMMANDS))
-    for c in names:
-        w.num(scale.get(c), f"action_model.scale.{c}", positive=True)
-        n = len(w.vec(coef.get(c), f"action_model.coefficients.{c}", max_len=MAX_POLY))
-        if std.get(c) is not None:
-            w.vec(std[c], f"action_model.std.{c}", n=n, nullable=True, nonneg=True)
-        if c in rng:
-            w.vec(rng[c], f"action_model.command_range.{c}", n=2)
-    if "lag" in am:
-        w.num(am["lag"], "action_model.lag", nonneg=True)
-    if am.get("lag_order", 1) not in (1, 2):
-        w.fail("action_model.lag_order", f"is {_one_line(repr(am['lag_order']))[:40]}, expected 1 or 2")
-    return CommandModel.from_json(am)
-
-
-def _effects(w: _Where, effects) -> dict:
+def _effects(w: Where, effects) -> dict:
     w.obj(effects, "effects")
     for name, entry in effects.items():
         w.obj(entry, f"effects.{name}")
@@ -343,39 +220,24 @@ def _effects(w: _Where, effects) -> dict:
     return effects
 
 
-def _from_json(cls, data, w: _Where) -> Model:
+def _from_json(cls, data, w: Where) -> Model:
     w.obj(data, "the top level")
     if data.get("schema") != SCHEMA:
-        got = "missing" if data.get("schema") is None else _one_line(repr(data["schema"]))[:60]
+        got = "missing" if data.get("schema") is None else one_line(repr(data["schema"]))[:60]
         w.fail("schema", f"is {got}, expected {SCHEMA!r}")
     am = w.obj(data.get("action_model"), "action_model")
     sm = w.obj(data.get("sensor_model"), "sensor_model")
-    command = None
     kind = am.get("kind")
-    if kind == "command_poly":
-        command = _command_model(w, am)
-        ids, vel, vstd = np.array([], int), np.zeros((0, 3)), None
-    elif kind == "table":
-        velocities = w.obj(am.get("velocities"), "action_model.velocities")
-        pairs = _action_ids(w, velocities.keys(), "action_model.velocities")
-        ids = np.array([a for a, _ in pairs], np.int64)
-        vel = np.array([w.vec(velocities[k], f"action_model.velocities.{k}", n=3) for _, k in pairs],
-                       float).reshape(len(ids), 3)
-        std = am.get("std")
-        vstd = None
-        if std:
-            std = w.obj(std, "action_model.std")
-            vstd = np.array([w.vec(std[k], f"action_model.std.{k}", n=3, nullable=True, nonneg=True)
-                             if std.get(k) is not None else np.full(3, np.nan) for _, k in pairs],
-                            float).reshape(len(ids), 3)
-    else:
-        w.fail("action_model.kind", f"{_one_line(repr(kind))[:60]} is not supported here (known: 'table', "
-                                    f"'command_poly')")
+    part = ACTION_MODELS.get(kind) if isinstance(kind, str) else None
+    if part is None:
+        w.fail("action_model.kind", f"{one_line(repr(kind))[:60]} is not supported here (known: "
+                                    + ", ".join(map(repr, ACTION_MODELS)) + ")")
+    action = {"action_ids": np.array([], np.int64), "velocities": np.zeros((0, 3)), **part.read(w, am).model_fields()}
     channels = sm.get("channels", list(CHANNELS))
     if (not isinstance(channels, list) or not channels or len(set(channels)) != len(channels)
             or not all(isinstance(c, str) and c in CHANNELS for c in channels)):
         w.fail("sensor_model.channels", f"must be a list of {' and/or '.join(map(repr, CHANNELS))} "
-                                        f"(got {_one_line(repr(channels))[:60]})")
+                                        f"(got {one_line(repr(channels))[:60]})")
     channels = tuple(c for c in CHANNELS if c in channels)
     reading = "reading" in channels
     poly = (w.vec(sm.get("reading_poly"), "sensor_model.reading_poly", max_len=MAX_POLY, span=COEFFICIENT_SPAN)
@@ -385,7 +247,7 @@ def _from_json(cls, data, w: _Where) -> Model:
     basis = sm.get("reading_basis", "distance")
     if reading and basis not in BASES:
         w.fail("sensor_model.reading_basis", f"must be one of {', '.join(map(repr, BASES))} "
-                                             f"(got {_one_line(repr(basis))[:60]})")
+                                             f"(got {one_line(repr(basis))[:60]})")
     dr = w.vec(sm["distance_range"], "sensor_model.distance_range", n=2, nonneg=True) \
         if sm.get("distance_range") is not None else np.zeros(2)
     if dr[1] < dr[0]:
@@ -408,14 +270,14 @@ def _from_json(cls, data, w: _Where) -> Model:
     effects = _effects(w, data.get("effects", {}))
     fit = w.obj(data.get("fit", {}), "fit")
     w.plain(fit, "fit")
-    return cls(action_ids=ids, velocities=vel, reading_poly=poly,
+    return cls(**action, reading_poly=poly,
                reading_sigma=(w.num(sm.get("reading_sigma"), "sensor_model.reading_sigma", positive=True, span=SIGMA_SPAN)
                               if reading else PAPER_START_READING_SIGMA),
                bearing_sigma=(w.num(sm.get("bearing_sigma"), "sensor_model.bearing_sigma", positive=True, span=SIGMA_SPAN)
                               if "bearing" in channels else PAPER_START_BEARING_SIGMA),
                channels=channels,
-               motion_noise=motion, distance_range=(float(dr[0]), float(dr[1])), velocity_std=vstd,
-               reading_poly_std=poly_std, reading_poly_cov=poly_cov, effects=effects, fit=fit, command=command,
+               motion_noise=motion, distance_range=(float(dr[0]), float(dr[1])),
+               reading_poly_std=poly_std, reading_poly_cov=poly_cov, effects=effects, fit=fit,
                reading_basis=basis if reading else "distance")
 
 

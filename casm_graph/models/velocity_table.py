@@ -7,11 +7,13 @@ code above the action model never asks which kind a log has.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from casm_graph.io.log import LogError
+from casm_graph.models.validate import Where
 
 
 AXES = ("vx", "vy", "w")
@@ -22,6 +24,21 @@ def json_number(x) -> float:
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) else math.nan
 
 KIND = "table"
+_ID = re.compile(r"[+-]?[0-9]+", re.ASCII)
+
+
+def action_ids(w: Where, keys, where: str) -> list[tuple[int, str]]:
+    """(id, key) of each key of a table's entry, sorted by id; a key that is no integer, or one named twice, fails."""
+    out, seen = [], set()
+    for k in keys:
+        if not _ID.fullmatch(k) or abs(int(k)) > 2 ** 63 - 1:
+            w.fail(where, f"has key {k[:40]!r}, which is not an integer action id")
+        a = int(k)
+        if a in seen:
+            w.fail(where, f"names action {a} twice")
+        seen.add(a)
+        out.append((a, k))
+    return sorted(out)
 
 
 @dataclass(frozen=True)
@@ -121,6 +138,23 @@ class VelocityTable:
                        float).reshape(-1, 3)
         mean = np.nanmean(np.abs(vel), axis=0) if len(vel) else np.full(3, np.nan)
         return {"actions": len(vel), **{f"mean_abs_{ax}": float(v) for ax, v in zip(AXES, mean)}}
+
+    @classmethod
+    def read(cls, w: Where, am: dict) -> "VelocityTable":
+        """The table of model.json's ``action_model`` entry ``am``, each field checked (``w`` names the file)."""
+        velocities = w.obj(am.get("velocities"), "action_model.velocities")
+        pairs = action_ids(w, velocities.keys(), "action_model.velocities")
+        ids = np.array([a for a, _ in pairs], np.int64)
+        vel = np.array([w.vec(velocities[k], f"action_model.velocities.{k}", n=3) for _, k in pairs],
+                       float).reshape(len(ids), 3)
+        std = am.get("std")
+        vstd = None
+        if std:
+            std = w.obj(std, "action_model.std")
+            vstd = np.array([w.vec(std[k], f"action_model.std.{k}", n=3, nullable=True, nonneg=True)
+                             if std.get(k) is not None else np.full(3, np.nan) for _, k in pairs],
+                            float).reshape(len(ids), 3)
+        return cls(ids, vel, vstd)
 
     def to_json(self) -> dict:
         ids = [str(int(a)) for a in self.action_ids]

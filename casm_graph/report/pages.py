@@ -18,7 +18,7 @@ from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.fit import residuals
 from casm_graph.fit.result import Fit
 from casm_graph.io.log import Log
-from casm_graph.models.command_model import CommandModel
+from casm_graph.models.command_model import AXIS_WORDS, CommandModel, map_name
 from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
 from casm_graph.models.effects.surface_friction import SurfaceFriction
 from casm_graph.models.model import Model
@@ -274,9 +274,6 @@ def velocity_table(fit: Fit, truth: dict | None) -> str:
     return summary + f"<table>{head}{''.join(rows)}</table>"
 
 
-AXIS_NAMES = ("forward speed", "sideways speed", "turn rate")
-
-
 def maps_figure(log: Log, fit: Fit, reference=None):
     """Learned forward-speed, sideways-speed (``vx, vy, w`` logs) and turn-rate maps over the commands run (and a
     reference map, if given)."""
@@ -294,7 +291,7 @@ def maps_figure(log: Log, fit: Fit, reference=None):
         ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned")
         if reference is not None:
             ax2.plot(grid, reference.velocities(ctl)[:, k], "C3--", lw=2, label="fitted against truth")
-        ax.set(xlabel=f"commanded {name} ({unit})", title=f"{AXIS_NAMES[k]} map")
+        ax.set(xlabel=f"commanded {name} ({unit})", title=f"{AXIS_WORDS[k][0]} map")
         ax2.set_ylabel(f"actual {name} ({unit})")
         ax2.legend(loc="upper left", fontsize=8)
         ax.yaxis.set_visible(False)
@@ -305,7 +302,7 @@ def maps_figure(log: Log, fit: Fit, reference=None):
 def command_facts(m: Model) -> list[tuple]:
     """The command maps' coefficients, for the page's table of the fit."""
     cm = m.command
-    return [(f"{('speed', 'sideways', 'turn')[k]} map {name}(c)", ", ".join(f"{x:.4g}" for x in cm.params[sl])
+    return [(f"{map_name(k)} {name}(c)", ", ".join(f"{x:.4g}" for x in cm.params[sl])
              + f" (powers of c/{cm.scale[j]:.3g})") for name, j, k, sl in cm.maps]
 
 

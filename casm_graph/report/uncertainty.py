@@ -15,7 +15,7 @@ import corner
 import numpy as np
 from matplotlib.figure import Figure
 
-from casm_graph.models.command_model import CommandModel
+from casm_graph.models.command_model import AXIS_WORDS, CommandModel, map_name
 from casm_graph.models.velocity_table import VelocityTable
 from casm_graph.report.pages import STYLE, png, subplots
 from casm_graph.sim.aibo import true_reading
@@ -94,9 +94,6 @@ def unseen_ranges(unc, step: float = 0.1) -> list[tuple[float, float]]:
     return out
 
 
-MAP_WORDS = (("speed", "m/s"), ("sideways speed", "m/s"), ("turn rate", "rad/s"))   # by body axis
-
-
 def command_band(unc, which: int, points: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(commands, mapped velocity, its Laplace std) of the command model's map ``which`` (``CommandModel.maps``:
     speed, [sideways,] turn) over the log's commands."""
@@ -151,7 +148,7 @@ def _assess_command(unc, known, weak, advice) -> dict:
     """Each command map's 90 % band over the commands driven, and the commands the log rarely drove."""
     rare = {}
     for which, (cmd, _, axis, _) in enumerate(unc.model.command.maps):
-        name, unit = MAP_WORDS[axis][0].split()[0] + " map", MAP_WORDS[axis][1]
+        name, unit = map_name(axis), AXIS_WORDS[axis][1]
         grid, _, s = command_band(unc, which)
         known.append(f"{name}: 90 % half-width {1.645 * np.median(s):.3g} {unit} (median) to "
                      f"{1.645 * np.max(s):.3g} {unit} (widest) over the commands {cmd} = {grid[0]:.3g} to "
@@ -297,7 +294,7 @@ def command_map_figure(unc, verdict):
     maps = unc.model.command.maps
     fig, axes = subplots(2, len(maps), figsize=(5 * len(maps), 5.5), sharex="col", gridspec_kw={"height_ratios": [3, 1]})
     for which, (cmd, col, axis, _) in enumerate(maps):
-        what, unit = MAP_WORDS[axis]
+        what, unit = AXIS_WORDS[axis]
         ax, axh = axes[0, which], axes[1, which]
         grid, mean, s = command_band(unc, which)
         ax.fill_between(grid, mean - 1.645 * s, mean + 1.645 * s, color="C0", alpha=0.3, label="90 % band")

@@ -24,7 +24,7 @@ import numpy as np
 from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.outliers import outlying, prune
-from casm_graph.fit.residuals import observation
+from casm_graph.fit.residuals import distances, observation
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.fit.turns import realias
@@ -221,7 +221,7 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
                 model = estimate_noise(problem, st, model, seed=seed + 100 + r)[0]
             progress.step(1)
         ok = ~np.isnan(log.obs_reading)         # the readings' distances, kept for distance_range below
-        d = np.hypot(*(log.landmark_xy[log.landmark_index] - poses[log.obs_step, :2]).T)[ok]
+        d = distances(poses[log.obs_step], log)[ok]
         better = None if attempt else choose_curve(d, log.obs_reading[ok], model.reading_poly,
                                                    model.reading_sigma, max_sensor_degree, model.reading_basis,
                                                    o.sensor_curve)
