@@ -10,15 +10,16 @@ the base's poses, with held-out folds (:func:`noise_candidate`).
 from __future__ import annotations
 
 from dataclasses import replace
-from functools import partial
+from functools import cached_property, partial
 
 import numpy as np
 
 from casm_graph.analysis.candidates.base import Bench
 from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, best_of_family, chosen_candidates,
-                                           family_members, folds, leading, predicted_sightings)
+                                           family_members, folds, leading, predicted_sightings,
+                                           standardised)
 from casm_graph.fit import continuous as CT
-from casm_graph.fit.residuals import sighting_residuals
+from casm_graph.fit.residuals import sighting_leverage, sighting_residuals
 from casm_graph.fit.result import Fit
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
@@ -67,14 +68,17 @@ def mixture_share(reading: np.ndarray, bearing: np.ndarray, reading_sigma, beari
 
 
 def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, effect, use: tuple, n: int,
-                    options: DiagnoseOptions = DEFAULTS) -> Candidate:
+                    options: DiagnoseOptions = DEFAULTS, leverage: np.ndarray | None = None) -> Candidate:
     """A noise-only ``effect`` scored at the base's poses (T+1, 3), which a noise model does not move: its
     parameters from the sightings' residuals, its log-likelihood against the base's on the same sightings, and
     on ``options.folds`` time blocks the parameters learned from the others scoring each block. A false-detection
     mixture is scored on every sighting, the ones the gate sets aside too (their number and size are its
     evidence), the base's sigmas held; an effect that scales the readings' sigma on the readings the gate kept
-    (``use``), the reading sigma concentrated out of both. A refit of the poses would let them trade motion
-    residuals for sighting residuals, which confounds the comparison of two noise models (BENCHMARKS.md)."""
+    (``use``), the reading sigma concentrated out of both, on the residuals standardised by their ``leverage`` (per
+    observation, :func:`casm_graph.fit.residuals.sighting_leverage`): a near sighting on a steep curve pins its
+    pose and keeps a small residual, which read raw as noise growing with distance (an omni world's constant camera
+    noise after a friction patch was added). A refit of the poses would let them trade motion residuals for
+    sighting residuals, which confounds the comparison of two noise models (BENCHMARKS.md)."""
     res = sighting_residuals(log, poses[log.obs_step], model, effects)
     noisy = [(e, s) for e, s in zip(effects, augmented.parameter_slices(list(effects))) if e.noise_only]
     scale = augmented.reading_scale(noisy, augmented.theta_from_model(list(effects), model), res["distance"])
@@ -95,7 +99,7 @@ def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, ef
             return effect.describe(np.array([f]))
     else:
         rows = use[0] & np.isfinite(rr)
-        z = rr / scale                       # in units of the reading sigma, the base's own scales out
+        z = standardised(rr, leverage) / scale     # in units of the reading sigma, the base's own scales out
 
         def fit(sel):
             th = effect.estimate_noise(np.asarray(effect.start, float), z[sel], None, d[sel],
@@ -157,6 +161,11 @@ class CommandBench(Bench):
         self.n = CT.residual_rows(log, self.coarse, self.cuse)
         self.rounds, self.ll0 = o.settle_rounds, None
 
+    @cached_property
+    def leverage(self) -> np.ndarray | None:
+        """Each reading's leverage on the refitted graph (NaN where it has none), for the noise candidates."""
+        return sighting_leverage(self.problem, self.state).get("reading")
+
     def wanted(self, name: str) -> bool:
         return self.chosen is None or name in self.chosen
 
@@ -204,7 +213,7 @@ class CommandBench(Bench):
                 progress.step(1)
         for e in hooked:
             if e.noise_only:                  # scored at the base's poses, without a refit
-                cands.append(noise_candidate(log, model, self.poses, self.own, e, self.cuse, n, o))
+                cands.append(noise_candidate(log, model, self.poses, self.own, e, self.cuse, n, o, self.leverage))
                 if progress is not None:
                     progress.step(1)
                 continue
