@@ -27,7 +27,7 @@ from casm_graph.fit import turns
 from casm_graph.fit import windows as W
 from casm_graph.fit.residuals import distances, sighting_residuals
 from casm_graph.fit.result import Fit, Progress
-from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
+from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, near_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.graph import augmented, robust
 from casm_graph.graph import table as G
@@ -333,6 +333,18 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
                         options.sensor_curve)
 
 
+def curve_in(log: Log, model: Model, poses: np.ndarray, basis: str, degree: int,
+             tail: float = SensorCurveOptions.tail) -> Model:
+    """``model`` with its sensor curve in ``basis``, of ``degree``, regressed on the readings at their distances
+    from ``poses`` (T+1, 3), those within ``tail`` robust sigmas of ``model``'s own curve: a warm start in another
+    basis."""
+    ok = np.isfinite(log.obs_reading)
+    d = distances(poses[log.obs_step], log)[ok]
+    r = log.obs_reading[ok]
+    keep = near_curve(r - model.reading(d), tail)
+    return model.with_(reading_poly=fit_curve(d[keep], r[keep], degree, basis), reading_basis=basis)
+
+
 def in_basis(log: Log, first: Fit, basis: str, degree: int, seed: int, progress: Progress, marginals: bool,
              o: CommandGraphOptions, max_sensor_degree: int) -> Fit:
     """``first`` refitted with its sensor curve in ``basis``: the curve of ``degree`` regressed on the readings at
@@ -340,12 +352,7 @@ def in_basis(log: Log, first: Fit, basis: str, degree: int, seed: int, progress:
     poses. Warm, unlike the action table's fresh start in 1/d: on continuous logs that start put a sighting on its
     landmark (0.05 m off, the standoff) on two of three omnidirectional worlds, 0.43 m from the truth on one."""
     t0 = time.perf_counter()
-    ok = np.isfinite(log.obs_reading)
-    d = distances(first.poses[log.obs_step], log)[ok]
-    r = log.obs_reading[ok]
-    res = r - first.model.reading(d)
-    keep = np.abs(res) <= o.sensor_curve.tail * 1.4826 * np.median(np.abs(res))
-    model = first.model.with_(reading_poly=fit_curve(d[keep], r[keep], degree, basis), reading_basis=basis)
+    model = curve_in(log, first.model, first.poses, basis, degree, o.sensor_curve.tail)
     out = _full_graph(log, model, first.poses, seed, progress, marginals, o, max_sensor_degree, [], [], 0, t0)
     out.model.fit.update({k: first.model.fit[k] for k in ("start_options", "start_slopes") if k in first.model.fit},
                          iterations=first.iterations + out.iterations,

@@ -41,6 +41,12 @@ class SensorCurveOptions:
 DEFAULTS = SensorCurveOptions()
 
 
+def near_curve(res: np.ndarray, tail: float) -> np.ndarray:
+    """The readings whose residuals ``res`` off a curve lie within ``tail`` robust sigmas (1.4826 times their median
+    absolute value): the ones a curve is regressed on."""
+    return np.abs(res) < tail * 1.4826 * np.median(np.abs(res))
+
+
 def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, sigma: float, max_degree: int,
                  basis: str = "distance", options: SensorCurveOptions = DEFAULTS) -> tuple[np.ndarray, str] | None:
     """(coefficients, basis) of a curve the data demand over the fitted one (else None).
@@ -56,7 +62,7 @@ def choose_curve(distance: np.ndarray, reading: np.ndarray, poly: np.ndarray, si
     if max_degree <= degree or len(reading) < 10 * (max_degree + 1):
         return None
     res = reading - curve(distance, poly, basis)
-    keep = np.abs(res) < options.tail * 1.4826 * np.median(np.abs(res))
+    keep = near_curve(res, options.tail)
     d, r = distance[keep], reading[keep]
     n = len(r)
     fits = {}

@@ -26,6 +26,7 @@ from casm_graph.graph import table as G
 from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
+from factors.reading import features
 
 MAX_ITERATIONS = 40
 TOL = 1e-6           # stop when the marginal likelihood improves by less than this fraction
@@ -98,13 +99,19 @@ def m_step(log: Log, model: Model, poses, W, X) -> Model:
     poly, s_r = np.asarray(model.reading_poly, float), float(model.reading_sigma)
     if ok.any():
         deg = len(poly) - 1
-        mom = gaussian_moments(d[ok], var_d[ok], 2 * deg)
+        u, du = (f[:, 1] for f in features(d[ok], 2, model.reading_basis))   # the curve's variable (d or 1/d)
+        mom = gaussian_moments(u, du ** 2 * var_d[ok], 2 * deg)
         idx = np.arange(deg + 1)
         EPP = mom[:, idx[:, None] + idx[None, :]]     # E[phi phi^T]
         EP = mom[:, :deg + 1]
         z = log.obs_reading[ok]
-        poly = np.linalg.solve(EPP.sum(0), (EP * z[:, None]).sum(0))
-        s_r = np.sqrt(np.mean(np.einsum("i,nij,j->n", poly, EPP, poly) - 2 * z * (EP @ poly) + z * z))
+        A, b = EPP.sum(0), (EP * z[:, None]).sum(0)
+        if model.reading_basis == "distance":
+            poly = np.linalg.solve(A, b)
+        else:                                         # powers of 1/d span decades: solved with the columns scaled
+            sc = 1.0 / np.sqrt(np.maximum(np.diag(A), 1e-300))
+            poly = sc * np.linalg.solve(A * np.outer(sc, sc), b * sc)
+        s_r = np.sqrt(max(float(np.mean(np.einsum("i,nij,j->n", poly, EPP, poly) - 2 * z * (EP @ poly) + z * z)), 0.0))
 
     okb = ~np.isnan(log.obs_bearing)
     s_b = float(model.bearing_sigma)
