@@ -15,27 +15,31 @@ COEFFICIENT_SPAN = (0.0, 1e12)     # sensor polynomial coefficients: beyond, the
 
 
 def no_constant(name: str):
+    """``json.loads``'s hook for NaN and Infinity, which strict JSON (and a model) does not hold."""
     raise ValueError(f"{name} is not valid JSON (write null for an unknown value)")
 
 
 def one_line(s: str) -> str:
+    """``s`` on one line, cut at 120 characters: a message quotes what it got without flooding the terminal."""
     s = " ".join(s.split())
     return s if len(s) <= 120 else s[:120] + "..."
 
 
 def kind_of(x) -> str:
+    """What JSON value ``x`` is, in words."""
     return {dict: "an object", list: "a list", str: "a string", bool: "true/false",
             type(None): "null"}.get(type(x), "a number")
 
 
 def expected(x, what: str) -> str:
+    """The message for a field that holds ``x`` where ``what`` belongs."""
     if x is None:
         return f"is missing or null (expected {what})"
     return f"must be {what} (got {kind_of(x)})"
 
 
 class Where:
-    """The file name, for messages."""
+    """The checks of one document's fields, each failing with one line that names the file (``source``) and field."""
 
     def __init__(self, source: str):
         self.source = source
