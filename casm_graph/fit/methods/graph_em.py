@@ -4,8 +4,8 @@ E-step: with the model fixed, smooth the poses on the graph (poses-only Levenber
 take their Gaussian marginals, each pose's covariance and the cross-covariance of consecutive
 poses (:mod:`casm_graph.graph.chain`, equal to ``gtsam.Marginals`` to machine precision). M-step: closed
 form, with exact Gaussian expectations and no sampling: E[R(-theta) dp] by Stein's lemma for the
-table, Gaussian moments of the linearised distance for the polynomial regression, expected squared
-residuals for the sigmas and the motion noise. The objective recorded per iteration is the Laplace
+table, Gaussian moments of the curve's linearised variable (d or 1/d) for the polynomial regression,
+expected squared residuals for the sigmas and the motion noise. The objective recorded per iteration is the Laplace
 marginal likelihood log p(O | model). On continuous ``v,w`` logs the E-step holds each step's velocity
 at the command map's (:func:`step_graph`) and the M-step regresses the expected displacements on the
 map's basis; the start is the continuous graph's coarse start, as a table's is the table graph's.
