@@ -95,11 +95,12 @@ class DiagnoseOptions:
     #                                    (-24,878 against -24,663), the lag's delay held at its two-round profile
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
-    proposal_challenge: float = 2.0    # a catalog verdict on the motion channel yields to the sparse regression's proposal, fitted as a
-    #                                    candidate, when the proposal gains at least this many times its
-    #                                    log-likelihood and lowers BIC by more than the look-alike margin below it
-    #                                    (continuous world: a speed oscillating in time was named battery_fade, turn
-    #                                    rate growing with speed battery_fade or surface_friction; 0: never)
+    proposal_challenge: float = 2.0    # a catalog verdict on the motion channel yields to the sparse regression's
+    #                                    proposal, fitted as a candidate, when the proposal gains at least this many
+    #                                    times its log-likelihood and lowers BIC by more than the look-alike margin
+    #                                    below it (continuous world: a speed oscillating in time was named
+    #                                    battery_fade, turn rate growing with speed battery_fade or surface_friction;
+    #                                    0: never)
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
     #                                    this lead) more than its own is the controller correcting the noise, not
     #                                    structure of the model (0: no such test)

@@ -293,7 +293,7 @@ def window_start(log: Log, velocity: np.ndarray, n_poly: int, speed: float,
         starts = {w: np.array([*fits[w][0][h], headings[h]]) for w, h in zip(ws, path)}
         return starts, float(sum(fits[w][1][h] for w, h in zip(ws, path)))
 
-    def distances(poly):
+    def reading_distances(poly):
         """Each sighting's distance from its reading: through the hypothesis reading = k d**p itself when p is not 1
         (monotone, unlike a cubic the grid smoother fits to an apparent size: on an omni world one turned back at
         5.8 m and put the windows 5 m off), else through ``poly``'s monotone part."""
@@ -304,7 +304,7 @@ def window_start(log: Log, velocity: np.ndarray, n_poly: int, speed: float,
 
     def place(poly):
         fits = {}
-        dist = distances(poly) if mode != "bearing" else None
+        dist = reading_distances(poly) if mode != "bearing" else None
         starts, total = {}, 0.0
         for w, ((a, _), rel, sel) in enumerate(zip(spans, rels, sels)):
             if len(sel) < 3:
