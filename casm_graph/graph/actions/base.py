@@ -70,6 +70,12 @@ class ActionPart:
     def __init__(self, log: Log, model: Model, lay, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
         self.log, self.lay = log, lay
         self.motion_effects, self.ls_index = list(motion_effects), np.asarray(ls_index, int)
+        self.noise_rules = self.rules(model)
+
+    @classmethod
+    def rules(cls, model: Model) -> NoiseRules:
+        """What the noise step may assume of ``model``'s robot (graph-em's M-step follows the same rules)."""
+        return cls.noise_rules
 
     @classmethod
     def default_layout(cls, log: Log, model: Model):

@@ -93,14 +93,17 @@ class CommandPoly(ActionPart):
     noise_rules = NoiseRules(huber_efficiency=False, lateral_at_most_forward=True, floor=1e-4)
     #   (an omnidirectional robot, commanded sideways, may slip sideways more than forward)
 
+    @classmethod
+    def rules(cls, model: Model) -> NoiseRules:
+        """An omnidirectional robot, commanded sideways, may slip sideways more than forward."""
+        return replace(cls.noise_rules, lateral_at_most_forward=False) if model.command.sizes[1] else cls.noise_rules
+
     def __init__(self, log, model: Model, lay: Layout, motion_effects=(), ls_index=np.zeros(0, int), effects=()):
         super().__init__(log, model, lay, motion_effects, ls_index, effects)
         cm = model.command
         bv, by, bw = cm.basis(log.controls, log.dt)
         self.Bv, self.By, self.Bw = bv[lay.seg_idx], by[lay.seg_idx], bw[lay.seg_idx]
         self.nv, self.ny = bv.shape[1], by.shape[1]
-        if self.ny:
-            self.noise_rules = replace(self.noise_rules, lateral_at_most_forward=False)
         self.n = len(cm.params)
         self.shape = (self.n,)
         self.seg_region = None
