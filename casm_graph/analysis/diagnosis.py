@@ -58,6 +58,12 @@ class DiagnoseOptions:
     structure_omega2: float = 0.01     # ... and it explains at least this share of the residual variance
     structure_share: float = 0.5       # a candidate is built for the structure when it explains one at least this
                                        # share as strong as the strongest (an effect shows in several channels)
+    own_structure: bool = True         # a candidate without held-out folds (continuous logs) is also built for a
+    #                                    structure of its own pairs at p below structure_p times the tests run over
+    #                                    its pairs tested: the search over every pair and the test of a candidate's
+    #                                    few pairs then share one family-wise error (omni worlds: a 0.16-s latency's
+    #                                    turn residuals against the turn acceleration, p 7e-6, and a 0.011-per-minute
+    #                                    fade's time trend were none)
     bic_support: float = -10.0         # a verdict's delta BIC at most this (strong evidence on Kass and Raftery's scale)
     heldout_support: float = 0.0       # and the held-out log-likelihood must improve by more than this
     heldout_veto: float = 50.0         # a structure match does not support a candidate whose held-out score falls by more
@@ -196,7 +202,9 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
     Motion residuals are smoothing residuals: their spread follows each step's leverage (how many
     sightings pin it) rather than physics, so motion channels are tested for their mean only. A sensor
     channel's spread is tested on its residuals standardised by their leverage (``ch.leverage``: r / sqrt(1 - h)),
-    so that sightings which pin their pose do not fake a spread that follows distance.
+    so that sightings which pin their pose do not fake a spread that follows distance. A motion channel's commanded
+    covariate whose dependence is significant or strong enough to count (a candidate's own structure) is tested
+    for the closed loop's feedback too.
     """
     order = np.argsort(ch.time, kind="stable")
     r = ch.residual
@@ -215,8 +223,8 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
         g = _groups(x[ok], cat, options)
         s_mean, p_mean = anova(r[ok], g, infl)
         if motion:
-            lead, when = feedback_strength(r_t, x[order], t_t, infl, options) \
-                if name in COMMANDED and p_mean < options.structure_p else (0.0, 0.0)
+            lead, when = feedback_strength(r_t, x[order], t_t, infl, options) if name in COMMANDED and (
+                p_mean < options.structure_p or s_mean >= options.structure_omega2) else (0.0, 0.0)
             out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"} if lead <= s_mean else
                        {"name": name, "strength": s_mean, "p": p_mean, "kind": "feedback",
                         "lead": when, "lead_strength": lead})
@@ -334,6 +342,7 @@ def folds(log: Log, k: int = DEFAULTS.folds) -> list[np.ndarray]:
 
 
 SCREENED = "not fitted: the score test predicts too small a gain, held-out folds not run"
+NO_FOLDS = "held-out folds are not run for continuous-command logs"
 DECIDED = "not needed: a supported candidate lower in BIC by more than the look-alike margin decides the verdict"
 
 
@@ -418,10 +427,34 @@ def strong_structures(structure: list[dict], options: DiagnoseOptions = DEFAULTS
     return [s for s in structure if s["strength"] >= options.structure_share * structure[0]["strength"]]
 
 
-def built_for(strong: list[dict], explains: dict) -> Callable:
-    """Whether a candidate is the effect built for one of the ``strong`` structures (its class's ``explains``)."""
+def own_structure(c, explains: dict, report: dict, structure: list[dict],
+                  options: DiagnoseOptions = DEFAULTS) -> dict | None:
+    """The strongest residual structure among ``c``'s own (channel, covariate) pairs (its class's ``explains``) in the
+    channel ``report``, each tested at ``options.structure_p`` times the tests the report ran over the pairs of ``c``
+    it ran: the material ``structure`` is a search over every pair, a candidate's corroboration a test of its few,
+    and both then keep one family-wise error. Strong enough to count (``structure_omega2``, and ``structure_share``
+    of the strongest material structure), not the closed loop's ``feedback``; None when none passes, or when ``c``
+    has held-out folds (they are its second line) or ``options.own_structure`` is off."""
+    if not options.own_structure or c.heldout_skipped != NO_FOLDS or not report:
+        return None
+    tests = [(ch, t) for ch, r in report.items() for t in r.get("covariates", [])]
+    own = [(ch, t) for ch, t in tests if (ch, t["name"]) in tuple(explains.get(c.effect, ()))]
+    if not own:
+        return None
+    p = options.structure_p * len(tests) / len(own)
+    floor = max(options.structure_omega2, options.structure_share * (structure[0]["strength"] if structure else 0.0))
+    found = [{"channel": ch, **t, "p_threshold": p} for ch, t in own
+             if t["p"] < p and t["strength"] >= floor and t["kind"] != "feedback"]
+    return max(found, key=lambda t: t["strength"]) if found else None
+
+
+def built_for(strong: list[dict], explains: dict, report: dict | None = None, structure: list[dict] = (),
+              options: DiagnoseOptions = DEFAULTS) -> Callable:
+    """Whether a candidate is the effect built for one of the ``strong`` structures (its class's ``explains``), or,
+    given the channel ``report``, for a structure of its own (:func:`own_structure`)."""
     def matches(c) -> bool:
-        return any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
+        return (any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
+                or own_structure(c, explains, report, list(structure), options) is not None)
     return matches
 
 
@@ -434,7 +467,7 @@ def is_supported(c: Candidate, matches: Callable, options: DiagnoseOptions = DEF
 
 
 def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None = None,
-            options: DiagnoseOptions = DEFAULTS, last: tuple = ()) -> tuple[str, list[str]]:
+            options: DiagnoseOptions = DEFAULTS, last: tuple = (), report: dict | None = None) -> tuple[str, list[str]]:
     """The verdict and the sentences that explain it.
 
     A candidate is supported when BIC supports it strongly and a second, independent line agrees:
@@ -445,13 +478,14 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     Kass and Raftery's scale; look-alikes such as a weak actuator lag and camera latency) the
     held-out score decides. Effects named in ``last`` are the verdict only when no other candidate is supported
     (a continuous log's false-detection mixture, scored on the sightings the gate sets aside, whose delta BIC is
-    not on the others' scale: a strong lens sends sightings beyond the gate too).
+    not on the others' scale: a strong lens sends sightings beyond the gate too). Given the channel ``report``, a
+    candidate without held-out folds may also be built for a structure of its own (:func:`own_structure`).
     """
     words = []
     explains = explains or {}
     o = options
     strong = strong_structures(structure, o)
-    matches = built_for(strong, explains)
+    matches = built_for(strong, explains, report, structure, o)
     supported = [c for c in cands if is_supported(c, matches, o)]
     first = [c for c in supported if c.effect not in last] or supported
     if supported:
@@ -461,11 +495,17 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
         if best.heldout_nll_drop > o.heldout_support:
             second = f"improves the held-out log-likelihood by {best.heldout_nll_drop:.1f} nats"
         else:
-            s = next(s for s in strong if (s["channel"], s["name"]) in tuple(explains.get(best.effect, ())))
-            rank = "the strongest" if s is structure[0] else "a strong"
+            s = next((s for s in strong if (s["channel"], s["name"]) in tuple(explains.get(best.effect, ()))), None)
             held = (f"though the held-out score does not improve ({best.heldout_nll_drop:.1f} nats)"
                     if np.isfinite(best.heldout_nll_drop) else f"its held-out score not measured ({best.heldout_skipped})")
-            second = f"accounts for {rank} residual structure ({s['channel']} residuals against {s['name']}), {held}"
+            if s is not None:
+                rank = "the strongest" if s is structure[0] else "a strong"
+                second = f"accounts for {rank} residual structure ({s['channel']} residuals against {s['name']}), {held}"
+            else:
+                s = own_structure(best, explains, report, structure, o)
+                second = (f"accounts for a residual structure it is built for ({s['channel']} residuals against "
+                          f"{s['name']}: {100 * s['strength']:.1f} % of their variance, p = {s['p']:.1e}, below "
+                          f"{s['p_threshold']:.1e} for a test of its own pairs), {held}")
         words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
                      f"and {second}. {best.explanation}")
         if len(tied) > 1:

@@ -72,7 +72,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     rep = channel_report(chs, o)
     struct = structures(rep, o)
     cands, skipped, explains, separated_by = part.score(struct)
-    v, words = verdict(cands, struct, explains, o, last=part.last)
+    v, words = verdict(cands, struct, explains, o, last=part.last, report=rep)
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, part.challenge,
                                o.proposal_challenge, o.lookalike_bic)
     alike = lookalikes(cands, v, separated_by, relative=part.relative, options=o, base=part.base_prediction)

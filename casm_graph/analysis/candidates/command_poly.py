@@ -15,8 +15,8 @@ from functools import cached_property, partial
 import numpy as np
 
 from casm_graph.analysis.candidates.base import Bench
-from casm_graph.analysis.diagnosis import (DEFAULTS, Candidate, DiagnoseOptions, best_of_family, chosen_candidates,
-                                           family_members, folds, leading, predicted_sightings,
+from casm_graph.analysis.diagnosis import (DEFAULTS, NO_FOLDS, Candidate, DiagnoseOptions, best_of_family,
+                                           chosen_candidates, family_members, folds, leading, predicted_sightings,
                                            standardised)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.residuals import sighting_leverage, sighting_residuals
@@ -29,7 +29,6 @@ from casm_graph.models.effects import REGISTRY
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
 
-NO_FOLDS = "held-out folds are not run for continuous-command logs"
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
                         "{:.3f} s ({} first-order stage{})."}
 
