@@ -454,7 +454,7 @@ def built_for(strong: list[dict], explains: dict, report: dict | None = None, st
     given the channel ``report``, for a structure of its own (:func:`own_structure`)."""
     def matches(c) -> bool:
         return (any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
-                or own_structure(c, explains, report, list(structure), options) is not None)
+                or own_structure(c, explains, report, structure, options) is not None)
     return matches
 
 

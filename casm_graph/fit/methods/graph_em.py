@@ -22,8 +22,8 @@ from casm_graph.fit.methods.kinds import kind
 from casm_graph.fit.outliers import outlying, prune
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain, robust
-from casm_graph.graph.actions import ACTIONS
 from casm_graph.graph import table as G
+from casm_graph.graph.actions import ACTIONS
 from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
@@ -82,15 +82,9 @@ def expected_displacement(poses, W, X):
     return Ed, L @ S @ np.transpose(L, (0, 2, 1))
 
 
-def huber_weights(r: np.ndarray, sigma: float) -> np.ndarray:
-    """IRLS weights of sighting residuals ``r`` at ``sigma``: the E-step's graph weighs sightings through Huber's
-    loss (:mod:`casm_graph.graph.robust`), so the M-step's regressions and sigmas weigh them alike."""
-    return robust.huber(r / sigma) ** 2
-
-
-def huber_sigma(expected_sq: np.ndarray, w: np.ndarray, z: np.ndarray, efficiency: float) -> float:
-    """A sighting sigma from expected squared residuals, their Huber weights ``w`` and whitened residuals ``z``,
-    by the noise step's rule (:func:`casm_graph.graph.noise.group_scales`): the rows within the gate, their
+def huber_sigma(expected_sq: np.ndarray, z: np.ndarray, efficiency: float) -> float:
+    """A sighting sigma from expected squared residuals and the whitened residuals ``z`` that set their Huber (IRLS)
+    weights, by the noise step's rule (:func:`casm_graph.graph.noise.group_scales`): the rows within the gate, their
     Huber-weighted sum divided by ``efficiency`` (the weighting's Gaussian efficiency where the action part's noise
     rules correct for it, else 1). A plain mean let wild sightings set the sigma, which the E-step's Huber loss then
     did not weigh as assumed (MRCLAM robot 4: the bearing sigma grew to 3.6 times graph's, and EM steps lowered the
@@ -98,7 +92,8 @@ def huber_sigma(expected_sq: np.ndarray, w: np.ndarray, z: np.ndarray, efficienc
     keep = np.abs(z) <= robust.GATE
     if not keep.any():
         keep = np.ones(len(z), bool)
-    return float(np.sqrt(max(float(np.sum(w[keep] * expected_sq[keep])), 0.0) / (efficiency * keep.sum())))
+    w = robust.huber(z[keep]) ** 2
+    return float(np.sqrt(max(float(np.sum(w * expected_sq[keep])), 0.0) / (efficiency * keep.sum())))
 
 
 def m_step(log: Log, model: Model, poses, W, X) -> Model:
@@ -129,14 +124,14 @@ def m_step(log: Log, model: Model, poses, W, X) -> Model:
         EP = mom[:, :deg + 1]
         z = log.obs_reading[ok]
         zr = (z - curve(d[ok], poly, model.reading_basis)) / s_r      # whitened at the model the E-step used
-        w = huber_weights(zr, 1.0)
+        w = robust.huber(zr) ** 2       # Huber weights, as the E-step's graph weighs the sightings
         A, b = np.einsum("n,nij->ij", w, EPP), (w[:, None] * EP * z[:, None]).sum(0)
         if model.reading_basis == "distance":
             poly = np.linalg.solve(A, b)
         else:                                         # powers of 1/d span decades: solved with the columns scaled
             sc = 1.0 / np.sqrt(np.maximum(np.diag(A), 1e-300))
             poly = sc * np.linalg.solve(A * np.outer(sc, sc), b * sc)
-        s_r = huber_sigma(np.einsum("i,nij,j->n", poly, EPP, poly) - 2 * z * (EP @ poly) + z * z, w, zr, efficiency)
+        s_r = huber_sigma(np.einsum("i,nij,j->n", poly, EPP, poly) - 2 * z * (EP @ poly) + z * z, zr, efficiency)
 
     okb = ~np.isnan(log.obs_bearing)
     s_b = float(model.bearing_sigma)
@@ -144,8 +139,7 @@ def m_step(log: Log, model: Model, poses, W, X) -> Model:
         r2 = d ** 2
         h = np.column_stack([rel[:, 1] / r2, -rel[:, 0] / r2, -np.ones(len(d))])   # d bearing / d (x, y, theta)
         eb = (log.obs_bearing - (np.arctan2(rel[:, 1], rel[:, 0]) - p[:, 2]) + np.pi) % (2 * np.pi) - np.pi
-        wb = huber_weights(eb[okb], s_b)
-        s_b = huber_sigma(eb[okb] ** 2 + np.einsum("ni,nij,nj->n", h, Wp, h)[okb], wb, eb[okb] / s_b, efficiency)
+        s_b = huber_sigma(eb[okb] ** 2 + np.einsum("ni,nij,nj->n", h, Wp, h)[okb], eb[okb] / s_b, efficiency)
     return new.with_(reading_poly=poly, reading_sigma=float(s_r), bearing_sigma=float(s_b), motion_noise=motion)
 
 
