@@ -11,7 +11,7 @@ from casm_graph.graph import augmented as AU
 from casm_graph.graph.problem import THETA, Problem
 from casm_graph.models.effects import REGISTRY, catalog, get, of_model, spec
 from casm_graph.models.effects.base import held
-from casm_graph.models.effects.surface_friction import NODES, bilinear, extent_around
+from casm_graph.models.effects.surface_friction import NODES, bilinear, extent_around, patch_start
 from casm_graph.models.model import Model, paper_start
 from casm_graph.sim.aibo import SimConfig, simulate
 
@@ -160,7 +160,7 @@ def test_friction_field_extent_is_recorded_restored_and_drawn(tmp_path):
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     """``surface_friction:K`` is the K x K member; it travels as its name, records its order in model.json and
     comes back as the same member; an order the family lacks is one LogError."""
-    assert REGISTRY["surface_friction"].orders == (1, 2, 3, NODES)
+    assert REGISTRY["surface_friction"].orders == (0, 1, 2, 3, NODES, 6)
     two = get("surface_friction:2")
     assert two is get("surface_friction:2") and two is not REGISTRY["surface_friction"]
     assert get(f"surface_friction:{NODES}") is REGISTRY["surface_friction"]
@@ -171,6 +171,10 @@ def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     assert plane.params == ("tilt_east", "tilt_north") and plane.free_parameters() == 2
     np.testing.assert_allclose(plane.slow(np.array([0.2, 0.1]), np.array([[1, 0], [-1, 0], [0, 1], [9, 9]])),
                                [0.1, -0.1, 0.05, 0.15])         # east edge 0.2 slower than west; clamped outside
+    patch = get("surface_friction:0")(extent=(-2.0, -2.0, 2.0, 2.0))
+    assert patch.params == ("slow", "west", "east", "south", "north") and patch.free_parameters() == 5
+    np.testing.assert_allclose(patch.slow(np.array([0.2, 0.0, 9.0, -1.0, 1.0]), np.array([[1, 0], [-1, 0], [1, 2]])),
+                               [0.2, 0.0, 0.0], atol=1e-4)       # on the rug, west of it, north of it
     with pytest.raises(cg.LogError, match="order 5"):
         get("surface_friction:5")
     with pytest.raises(cg.LogError, match="whole number"):
@@ -192,6 +196,27 @@ def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     lens = get("lens_distortion")()
     lens.restore({"k": 0.1, "k4": 0.2, "order": 2})            # any family, through the base hook
     assert lens.params == ("k", "k4") and lens.order == 2
+
+
+def test_a_patch_starts_where_the_steps_fall_short_of_their_commands():
+    """A robot sweeping a 6 x 4 m floor in rows at two speeds, its steps noisy by 5 %: on a rug 20 % slower over
+    x in [1, 3], y in [0.5, 2.5] the patch's start is the rug's cells and its slow-down."""
+    rng = np.random.default_rng(3)
+    xy, heading, asked = [np.array([-3.0, -2.0])], [], []
+    for row in range(17):
+        going, v = (1.0, 0.2) if row % 2 == 0 else (-1.0, 0.15)
+        while -3.0 <= xy[-1][0] + going * v * 0.1 <= 3.0:
+            p = xy[-1]
+            on = 1.0 <= p[0] <= 3.0 and 0.5 <= p[1] <= 2.5
+            xy.append(p + [going * v * 0.1 * (0.8 if on else 1.0) * (1 + 0.05 * rng.standard_normal()), 0.0])
+            heading.append(0.0 if going > 0 else np.pi)
+            asked.append([v * 0.1, 0.0, 0.0])
+        xy[-1] = xy[-1] + [0.0, 0.25]
+    heading.append(heading[-1])
+    poses = np.column_stack([np.array(xy), np.array(heading)])
+    start = patch_start(poses, np.array(asked), extent_around(poses))
+    assert start[0] == pytest.approx(0.2, abs=0.05), start
+    np.testing.assert_allclose(start[1:], [1.0, 3.0, 0.5, 2.5], atol=0.6)
 
 
 @pytest.mark.parametrize("order", [1, 2])

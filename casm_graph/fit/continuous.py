@@ -669,6 +669,7 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
     t0 = time.perf_counter()
     o = options
     effects = augmented.instantiate(effects, log)
+    augmented.begin(effects, base.model, base.poses)
     full = layout(log, o.full_knot_dt)
     theta = augmented.theta_from_model(effects, base.model)     # the effects start where the model has them, else at
     model = base.model.with_(effects={**base.model.effects, **{   # their own starts

@@ -11,7 +11,7 @@ import numpy as np
 
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
-from casm_graph.graph.augmented import estimate_noise, instantiate, theta_from_model
+from casm_graph.graph.augmented import begin, estimate_noise, instantiate, theta_from_model
 from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.effects import Effect
@@ -49,6 +49,7 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
     noise levels (and noise-only effect parameters) where they are.
     """
     effects = instantiate(effects, log)
+    begin(effects, model, poses)
     th = theta_from_model(effects, model) if theta is None else np.asarray(theta, float)
     cost, its = [], 0
     problem = Problem(log, model, effects, theta=th, obs_mask=obs_mask, huber=False,

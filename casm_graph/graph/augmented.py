@@ -34,6 +34,14 @@ def instantiate(names_or_effects, log: Log) -> list[Effect]:
     return out
 
 
+def begin(effects: list[Effect], model: Model, poses: np.ndarray) -> None:
+    """Each least-squares effect ``model`` does not hold yet takes its start from ``poses`` (T+1, 3), a fit of
+    ``model`` without it (:meth:`Effect.begin`)."""
+    for e in effects:
+        if not e.noise_only and not model.effects.get(e.name):
+            e.begin(model, poses)
+
+
 def theta_from_model(effects: list[Effect], model: Model) -> np.ndarray:
     """Effect parameters stored in ``model.effects``, or each effect's start where absent (what else an entry
     records, each effect takes back through ``restore``)."""

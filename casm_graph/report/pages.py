@@ -93,8 +93,8 @@ def trajectory_figure(log: Log, poses: np.ndarray, std: np.ndarray, others: dict
 
 
 def friction_figure(fit: Fit):
-    """The fitted surface_friction field (share of speed lost against the grid's average floor, in %) with the
-    trajectory over it."""
+    """The fitted surface_friction field (share of speed lost against the grid's average floor, or against the floor
+    off a patch, in %) with the trajectory over it."""
     e = fit.model.effects["surface_friction"]
     x0, y0, x1, y1 = e["extent"]
     gx, gy = np.meshgrid(np.linspace(x0, x1, 120), np.linspace(y0, y1, 90))
@@ -106,7 +106,8 @@ def friction_figure(fit: Fit):
     fig, ax = subplots(figsize=(7, 5))
     im = ax.pcolormesh(gx, gy, 100 * slow, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="auto")
     ax.plot(fit.poses[:, 0], fit.poses[:, 1], color="k", lw=0.3, alpha=0.4)
-    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title="surface friction: speed lost (%) against the average floor")
+    against = "the floor off the patch" if field.order == 0 else "the average floor"
+    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title=f"surface friction: speed lost (%) against {against}")
     fig.colorbar(im, ax=ax, shrink=0.8, label="% of speed lost")
     return fig
 

@@ -174,6 +174,7 @@ class CommandBench(Bench):
 
     def settle_hooked(self, rounds: int, e):
         """A hooked effect's candidate (the proposal's too), settled as the base is."""
+        augmented.begin([e], self.model, self.poses)
         return CT.settled_log_likelihood(self.log, self.coarse, self.model, self.cuse, self.start, [*self.own, e],
                                          rounds=rounds, iterations=self.search.iterations)
 

@@ -21,7 +21,7 @@ from casm_graph.analysis.diagnosis import (DECIDED, DEFAULTS, SCREENED, Candidat
                                            predicted_sightings, strong_structures)
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
-from casm_graph.graph.augmented import instantiate
+from casm_graph.graph.augmented import begin, instantiate
 from casm_graph.io.log import Log
 from casm_graph.models.effects import REGISTRY, get, of_model, spec
 from casm_graph.models.effects.base import held
@@ -82,6 +82,7 @@ def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.Eff
     """
     t0 = time.perf_counter()
     eff = instantiate([_resolve(extra)], log)[0]
+    begin([eff], refit.model, refit.poses)
     order = eff.order if eff.orders else None
     penalty = eff.free_parameters() * np.log(n_data(log))
     gain = predicted_gain(log, base, eff, floor) if floor is not None and options.screen_share > 0 else None

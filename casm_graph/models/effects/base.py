@@ -68,6 +68,10 @@ class Effect:
         _check_order(self, order)
         self.order = order
 
+    def begin(self, model, poses: np.ndarray) -> None:
+        """Called before a fit starts this effect from nothing, with ``poses`` (T+1, 3) of a fit of ``model`` without
+        it: an effect whose start depends on the log (a patch's edges) sets ``self.start`` here."""
+
     # ----------------------------------------------------------------- support
     def applicable(self, log: Log) -> str | None:
         """None when ``log`` can support this effect, else the reason it cannot."""

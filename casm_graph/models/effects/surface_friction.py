@@ -7,8 +7,11 @@ whose edges are elsewhere), and a Gaussian prior per node keeps the unvisited co
 A floor slower everywhere is a slower action model: the field's level and the action model's scale
 are one quantity, so the field acts through its nodes' deviations from their mean (the action model
 is the speed on the grid's average floor) and its level is left to the prior. The field is a family:
-order 1 a plane (the floor slower toward one side: two slopes), order K >= 2 a K x K grid of nodes; the
-diagnosis keeps the member BIC prefers.
+order 0 a rectangular patch (a rug) whose slow-down and four edges are the parameters, order 1 a plane (the
+floor slower toward one side: two slopes), order K >= 2 a K x K grid of nodes; the diagnosis keeps the member
+BIC prefers. A grid smears a patch's sharp edges over a cell (the 4 x 4 one over a third of the field, which
+leaves residual structure along x or y once added); the patch has them, in five parameters. Its edges start
+where the poses of a fit without it show the robot covering least of its commanded distance (:meth:`begin`).
 """
 from __future__ import annotations
 
@@ -16,7 +19,14 @@ import numpy as np
 
 from casm_graph.models.effects.base import Effect, register
 
-NODES = 4                 # nodes per axis of the field's richest form (the default)
+NODES = 4                 # nodes per axis of the default form
+FINE = 6                  # nodes per axis of the family's richest form
+PATCH = 0                 # the order of the rectangular patch
+CELLS = 12                # cells per axis of the grid a patch's start is searched on
+EDGE = 1 / 48             # a patch edge's width (logistic), as a share of the field's span
+MIN_SHARE = 0.03          # a patch's start covers at least this share of the commanded distance, and leaves as much
+GROUPS = 64               # steps asking for one of at most this many velocities are compared within their velocity
+SPEED_BINS = 8            # else within these quantile bins of commanded speed
 PRIOR_SIGMA = 0.3         # prior std of each node's slow-down (a carpet rarely costs more than half the speed)
 PAD = 0.05                # share of the visited span added on each side of the field
 MIN_SPAN = 0.5            # m: the field spans at least this much along each axis
@@ -50,14 +60,14 @@ class SurfaceFriction(Effect):
     params = tuple(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES))   # node (i along x, j along y)
     start = (0.0,) * NODES ** 2
     scale = (0.02,) * NODES ** 2
-    orders = (1, 2, 3, NODES)        # 1: a plane; K: nodes per axis
+    orders = (PATCH, 1, 2, 3, NODES, FINE)    # 0: a patch; 1: a plane; K: nodes per axis
     order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
     distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
                         "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
                "every command covers a smaller fraction of its usual distance there; the slow-down is a smooth field "
-               "over the visited area (a plane, or a grid of 2 x 2 to 4 x 4 nodes).")
+               "over the visited area (a rectangular patch, a plane, or a grid of 2 x 2 to 6 x 6 nodes).")
 
     def __init__(self, log=None, extent=None, order=None):
         super().__init__(log, order)
@@ -65,9 +75,26 @@ class SurfaceFriction(Effect):
 
     def set_order(self, order: int) -> None:
         super().set_order(order)
+        if order == PATCH:
+            self.params = ("slow", "west", "east", "south", "north")
+            self.start, self.scale = (0.0,) * 5, (0.02, 0.1, 0.1, 0.1, 0.1)
+            return
         self.params = (("tilt_east", "tilt_north") if order == 1 else
                        tuple(f"slow_{i}_{j}" for j in range(order) for i in range(order)))
         self.start, self.scale = (0.0,) * len(self.params), (0.02,) * len(self.params)
+
+    def begin(self, model, poses: np.ndarray) -> None:
+        """A patch's start from the poses (T+1, 3) of a fit without it: on a grid of ``CELLS`` x ``CELLS`` cells,
+        the rectangle of cells inside which the steps covered a different share of their commanded distance than
+        outside (the largest between-group sum of squares of the shortfall along each step's commanded direction)."""
+        poses = np.asarray(poses, float)
+        if self.extent is None:
+            self.extent = extent_around(poses)
+        if self.order != PATCH or self.log is None or len(poses) != self.log.steps + 1:
+            return
+        start = patch_start(poses, model.step_velocities(self.log) * self.log.dt[:, None], self.extent)
+        if start is not None:
+            self.start = start
 
     def restore(self, entry: dict) -> None:
         super().restore(entry)
@@ -77,6 +104,10 @@ class SurfaceFriction(Effect):
             self.extent = tuple(float(v) for v in entry["extent"])
 
     def prior(self):
+        if self.order == PATCH:           # an edge beyond the visited area drifts to its border
+            x0, y0, x1, y1 = self.extent if self.extent is not None else (-50.0, -50.0, 50.0, 50.0)
+            return (np.array([0.0, x0, x1, y0, y1]),
+                    np.array([PRIOR_SIGMA, x1 - x0, x1 - x0, y1 - y0, y1 - y0]))
         return np.zeros(len(self.params)), np.full(len(self.params), PRIOR_SIGMA)
 
     def free_parameters(self) -> int:
@@ -86,6 +117,8 @@ class SurfaceFriction(Effect):
         """Fraction of its speed the robot loses at each (x, y), against the field's average floor (a plane's
         slopes are the east and north edges against the west and south ones)."""
         theta, xy = np.asarray(theta, float), np.atleast_2d(xy)
+        if self.order == PATCH:
+            return theta[0] * inside(xy, theta[1:], self.extent)
         if self.order == 1:
             x0, y0, x1, y1 = self.extent
             u = np.clip((xy[:, 0] - x0) / (x1 - x0), 0.0, 1.0) - 0.5
@@ -101,7 +134,7 @@ class SurfaceFriction(Effect):
     def describe(self, theta):
         theta = np.asarray(theta, float)
         extent = {"extent": None if self.extent is None else list(self.extent)}
-        if self.order == 1:
+        if self.order in (PATCH, 1):
             return {**super().describe(theta), **extent}
         return {**super().describe(theta - theta.mean()), "grid": [self.order, self.order], **extent}
 
@@ -110,5 +143,69 @@ class SurfaceFriction(Effect):
         (on an odd grid the middle column half as slow; a plane's east edge ``value`` slower than its west)."""
         if self.order == 1:
             return np.array([float(value), 0.0])
+        if self.order == PATCH:              # the east half, its other edges beyond the field
+            x0, y0, x1, y1 = self.extent
+            return np.array([float(value), (x0 + x1) / 2, 2 * x1 - x0, 2 * y0 - y1, 2 * y1 - y0])
         i = np.arange(len(self.params)) % self.order
         return float(value) * np.clip(i - (self.order - 1) / 2 + 0.5, 0.0, 1.0)
+
+
+def inside(xy: np.ndarray, edges, extent) -> np.ndarray:
+    """How far each (x, y) lies inside the rectangle (west, east, south, north): 1 well inside, 0 well outside,
+    logistic across each edge over ``EDGE`` of the field's span."""
+    w, e, s, n = (float(v) for v in edges)
+    x0, y0, x1, y1 = extent
+    kx, ky = EDGE * (x1 - x0), EDGE * (y1 - y0)
+
+    def up(z):
+        return 0.5 * (1.0 + np.tanh(0.5 * np.clip(z, -60.0, 60.0)))
+
+    return up((xy[:, 0] - w) / kx) * up((e - xy[:, 0]) / kx) * up((xy[:, 1] - s) / ky) * up((n - xy[:, 1]) / ky)
+
+
+def patch_start(poses: np.ndarray, commanded: np.ndarray, extent) -> tuple | None:
+    """(slow, west, east, south, north) of the rectangle of grid cells inside which the steps fell short of their
+    commanded displacement (``commanded``: (T, 3), each step's body displacement under the model) by a different
+    share than outside, the steps that asked for the same velocity compared among themselves (an action model fitted
+    without the patch gives an action run mostly on it the patch's speed); None when the steps barely move."""
+    d = np.diff(poses[:, :2], axis=0)
+    h = poses[:-1, 2] + 0.5 * np.diff(np.unwrap(poses[:, 2]))
+    c, s = np.cos(h), np.sin(h)
+    body = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    length = np.hypot(commanded[:, 0], commanded[:, 1])
+    ok = length > 1e-9
+    if ok.sum() < 10:
+        return None
+    unit = commanded[ok, :2] / length[ok, None]
+    x = length[ok]
+    # m each step fell short of (negative) or ran past its command; a jump or a spin says nothing of the floor
+    y = np.clip(np.sum((body[ok] - commanded[ok, :2]) * unit, axis=1), -x, x)
+    _, group = np.unique(np.round(commanded[ok], 9), axis=0, return_inverse=True)
+    if group.max() >= GROUPS:                                         # continuous commands: bins of speed
+        group = np.searchsorted(np.quantile(x, np.linspace(0, 1, SPEED_BINS + 1)[1:-1]), x)
+    group = group.ravel()
+    G = int(group.max()) + 1
+    xa = np.bincount(group, x * x, G)
+    y = y - x * (np.bincount(group, x * y, G) / xa)[group]            # each group's own mean shortfall removed
+    mid = 0.5 * (poses[:-1, :2] + poses[1:, :2])[ok]
+    x0, y0, x1, y1 = extent
+    i = np.clip(((mid[:, 0] - x0) / (x1 - x0) * CELLS).astype(int), 0, CELLS - 1)
+    j = np.clip(((mid[:, 1] - y0) / (y1 - y0) * CELLS).astype(int), 0, CELLS - 1)
+    sxy, sxx = np.zeros((CELLS + 1, CELLS + 1)), np.zeros((G, CELLS + 1, CELLS + 1))
+    np.add.at(sxy, (i + 1, j + 1), x * y)
+    np.add.at(sxx, (group, i + 1, j + 1), x * x)
+    pxy, pxx = sxy.cumsum(0).cumsum(1), sxx.cumsum(1).cumsum(2)
+    lo, hi = np.triu_indices(CELLS)                 # cell ranges [lo, hi] along one axis
+    a, b, u, v = lo[:, None], hi[:, None] + 1, lo[None, :], hi[None, :] + 1
+    S = pxy[b, v] - pxy[a, v] - pxy[b, u] + pxy[a, u]
+    Xg = pxx[:, b, v] - pxx[:, a, v] - pxx[:, b, u] + pxx[:, a, u]      # per group, inside each rectangle
+    X = Xg.sum(0)
+    info = X - np.sum(Xg ** 2 / xa[:, None, None], axis=0)            # the indicator's variance left within groups
+    fair = (X > MIN_SHARE * xa.sum()) & (X < (1 - MIN_SHARE) * xa.sum()) & (info > MIN_SHARE * X)
+    if not fair.any():
+        return None
+    score = np.where(fair, S ** 2 / np.where(fair, info, 1.0), -1.0)
+    k, m = np.unravel_index(np.argmax(score), score.shape)
+    cx, cy = (x1 - x0) / CELLS, (y1 - y0) / CELLS
+    return (float(-S[k, m] / info[k, m]), x0 + lo[k] * cx, x0 + (hi[k] + 1) * cx, y0 + lo[m] * cy,
+            y0 + (hi[m] + 1) * cy)
