@@ -160,7 +160,7 @@ def test_friction_field_extent_is_recorded_restored_and_drawn(tmp_path):
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     """``surface_friction:K`` is the K x K member; it travels as its name, records its order in model.json and
     comes back as the same member; an order the family lacks is one LogError."""
-    assert REGISTRY["surface_friction"].orders == (0, 1, 2, 3, NODES, 6)
+    assert REGISTRY["surface_friction"].orders == (0, 1, 2, 3, NODES)
     two = get("surface_friction:2")
     assert two is get("surface_friction:2") and two is not REGISTRY["surface_friction"]
     assert get(f"surface_friction:{NODES}") is REGISTRY["surface_friction"]

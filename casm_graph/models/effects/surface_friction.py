@@ -19,8 +19,7 @@ import numpy as np
 
 from casm_graph.models.effects.base import Effect, register
 
-NODES = 4                 # nodes per axis of the default form
-FINE = 6                  # nodes per axis of the family's richest form
+NODES = 4                 # nodes per axis of the default form, the family's richest
 PATCH = 0                 # the order of the rectangular patch
 CELLS = 12                # cells per axis of the grid a patch's start is searched on
 EDGE = 1 / 48             # a patch edge's width (logistic), as a share of the field's span
@@ -60,14 +59,14 @@ class SurfaceFriction(Effect):
     params = tuple(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES))   # node (i along x, j along y)
     start = (0.0,) * NODES ** 2
     scale = (0.02,) * NODES ** 2
-    orders = (PATCH, 1, 2, 3, NODES, FINE)    # 0: a patch; 1: a plane; K: nodes per axis
+    orders = (PATCH, 1, 2, 3, NODES)    # 0: a patch; 1: a plane; K: nodes per axis
     order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
     distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
                         "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
                "every command covers a smaller fraction of its usual distance there; the slow-down is a smooth field "
-               "over the visited area (a rectangular patch, a plane, or a grid of 2 x 2 to 6 x 6 nodes).")
+               "over the visited area (a rectangular patch, a plane, or a grid of 2 x 2 to 4 x 4 nodes).")
 
     def __init__(self, log=None, extent=None, order=None):
         super().__init__(log, order)
