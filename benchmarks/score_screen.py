@@ -29,7 +29,7 @@ from casm_graph.analysis import diagnosis as D                            # noqa
 from casm_graph.analysis.candidates import table as TB                    # noqa: E402
 from casm_graph.analysis.score_test import predicted_floor, predicted_gain  # noqa: E402
 from casm_graph.fit import effect_fit                                     # noqa: E402
-from casm_graph.graph.augmented import instantiate                        # noqa: E402
+from casm_graph.graph.augmented import begin, instantiate                 # noqa: E402
 from casm_graph.models.effects import REGISTRY, of_model, spec            # noqa: E402
 from casm_graph.sim.aibo import SimConfig, simulate, write                # noqa: E402
 from tests.worlds.independent_world import generate                       # noqa: E402
@@ -70,6 +70,7 @@ def world(args) -> dict:
                 continue
             for m in D.family_members(cls):
                 eff = instantiate([m], log)[0]
+                begin([eff], refit.model, refit.poses)          # a start from the log, as the diagnosis gives it
                 t0 = time.perf_counter()
                 gain = predicted_gain(log, base, eff, floor)
                 t_screen = time.perf_counter() - t0
