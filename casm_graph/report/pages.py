@@ -20,7 +20,7 @@ from casm_graph.fit.result import Fit
 from casm_graph.io.log import Log
 from casm_graph.models.command_model import AXIS_WORDS, CommandModel, map_name
 from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
-from casm_graph.models.effects.surface_friction import SurfaceFriction
+from casm_graph.models.effects.surface_friction import PATCH, SurfaceFriction
 from casm_graph.models.model import Model
 from casm_graph.models.velocity_table import VelocityTable
 from casm_graph.sim.aibo import true_reading
@@ -106,7 +106,7 @@ def friction_figure(fit: Fit):
     fig, ax = subplots(figsize=(7, 5))
     im = ax.pcolormesh(gx, gy, 100 * slow, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="auto")
     ax.plot(fit.poses[:, 0], fit.poses[:, 1], color="k", lw=0.3, alpha=0.4)
-    against = "the floor off the patch" if field.order == 0 else "the average floor"
+    against = "the floor off the patch" if field.order == PATCH else "the average floor"
     ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title=f"surface friction: speed lost (%) against {against}")
     fig.colorbar(im, ax=ax, shrink=0.8, label="% of speed lost")
     return fig

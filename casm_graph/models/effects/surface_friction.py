@@ -16,6 +16,7 @@ where the poses of a fit without it show the robot covering least of its command
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import expit
 
 from casm_graph.models.effects.base import Effect, register
 
@@ -83,9 +84,10 @@ class SurfaceFriction(Effect):
         self.start, self.scale = (0.0,) * len(self.params), (0.02,) * len(self.params)
 
     def begin(self, model, poses: np.ndarray) -> None:
-        """A patch's start from the poses (T+1, 3) of a fit without it: on a grid of ``CELLS`` x ``CELLS`` cells,
-        the rectangle of cells inside which the steps covered a different share of their commanded distance than
-        outside (the largest between-group sum of squares of the shortfall along each step's commanded direction)."""
+        """The field's extent from the poses (T+1, 3) of a fit without it, and a patch's start: on a grid of ``CELLS``
+        x ``CELLS`` cells, the rectangle of cells inside which the steps covered a different share of their commanded
+        distance than outside (the largest between-group sum of squares of the shortfall along each step's commanded
+        direction)."""
         poses = np.asarray(poses, float)
         if self.extent is None:
             self.extent = extent_around(poses)
@@ -114,7 +116,7 @@ class SurfaceFriction(Effect):
 
     def slow(self, theta: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Fraction of its speed the robot loses at each (x, y), against the field's average floor (a plane's
-        slopes are the east and north edges against the west and south ones)."""
+        slopes are the east and north edges against the west and south ones; a patch's against the floor off it)."""
         theta, xy = np.asarray(theta, float), np.atleast_2d(xy)
         if self.order == PATCH:
             return theta[0] * inside(xy, theta[1:], self.extent)
@@ -155,11 +157,8 @@ def inside(xy: np.ndarray, edges, extent) -> np.ndarray:
     w, e, s, n = (float(v) for v in edges)
     x0, y0, x1, y1 = extent
     kx, ky = EDGE * (x1 - x0), EDGE * (y1 - y0)
-
-    def up(z):
-        return 0.5 * (1.0 + np.tanh(0.5 * np.clip(z, -60.0, 60.0)))
-
-    return up((xy[:, 0] - w) / kx) * up((e - xy[:, 0]) / kx) * up((xy[:, 1] - s) / ky) * up((n - xy[:, 1]) / ky)
+    return (expit((xy[:, 0] - w) / kx) * expit((e - xy[:, 0]) / kx) * expit((xy[:, 1] - s) / ky)
+            * expit((n - xy[:, 1]) / ky))
 
 
 def patch_start(poses: np.ndarray, commanded: np.ndarray, extent) -> tuple | None:
