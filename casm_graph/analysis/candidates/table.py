@@ -31,34 +31,45 @@ from casm_graph.models.model import Model
 def heldout_log_likelihood(log: Log, model: Model, poses: np.ndarray, effects: list,
                            detail: list | None = None, options: DiagnoseOptions = DEFAULTS) -> float:
     """Sum over folds of log p(hidden block | rest): what the effects and noise levels learned without
-    a block say about it.
+    a block say about it (:func:`heldout_fold` per fold).
 
-    Per fold: the model is fitted on the rest; then, with the effects' parameters and the noise
-    levels held at those values, table, polynomial and poses are fitted once with the block and once
-    without, and the block's term is the difference of the two log-likelihoods. The table and
+    ``detail`` (a list) receives per fold the log-likelihood with the block and without it;
+    ``options``: the folds and the bounds of each fold's least squares.
+    """
+    total = 0.0
+    for k in range(options.folds):
+        with_block, without = heldout_fold(log, model, poses, effects, k, options)
+        if detail is not None:
+            detail.append({"with_block": with_block, "without_block": without})
+        total += with_block - without
+    return total
+
+
+def heldout_fold(log: Log, model: Model, poses: np.ndarray, effects: list, k: int,
+                 options: DiagnoseOptions = DEFAULTS) -> tuple[float, float]:
+    """Fold ``k``'s log-likelihoods of the whole log with the block and of the rest without it; their difference
+    is log p(block | rest).
+
+    The model is fitted on the rest; then, with the effects' parameters and the noise levels held at those
+    values, table, polynomial and poses are fitted once with the block and once without. The table and
     polynomial are the nuisance here: on a six-minute log many actions run only inside one block,
     and a table learned without it predicts that block so badly (hundreds of nats either way) that
     the comparison of two models drowned in it. The fit with the block starts from the model's own
     full-log poses: the training poses drifted over a block without sightings and could stop in another
     basin (640 nats lower on one of 36 folds of six Aibo effect logs, never more than 0.2 higher:
     benchmarks/heldout_stability.py --folds); the fit without it is the training problem with effects
-    and noise held, so the training poses are already its optimum.
-    ``detail`` (a list) receives per fold the log-likelihood with the block and without it;
-    ``options``: the folds and the bounds of each fold's least squares.
+    and noise held, so the training poses are already its optimum. ``effects``: classes or catalog names.
     """
-    total = 0.0
-    fixed = [held(_resolve(e)) for e in effects]
+    effects = [_resolve(e) for e in effects]
+    fixed = [held(e) for e in effects]
     its, tol = options.fold_iterations, options.fold_tol
-    for mask in folds(log, options.folds):
-        tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
-        with_block, without = (
-            effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=its,
-                           obs_mask=m, fit_noise=False, rel_tol=tol).log_likelihood
-            for m, start in ((None, poses), (mask, tr.poses)))
-        if detail is not None:
-            detail.append({"with_block": with_block, "without_block": without})
-        total += with_block - without
-    return total
+    mask = folds(log, options.folds)[k]
+    tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
+    with_block, without = (
+        effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=its,
+                       obs_mask=m, fit_noise=False, rel_tol=tol).log_likelihood
+        for m, start in ((None, poses), (mask, tr.poses)))
+    return with_block, without
 
 
 def n_data(log: Log) -> int:
@@ -80,51 +91,67 @@ def fit_candidate(log: Log, refit: "effect_fit.EffectFit", base: "effect_fit.Eff
     ``options.screen_share`` of its BIC penalty is not fitted: it returns with the predicted delta BIC,
     ``screened`` set, and no model.
     """
+    return scored(fit_member(log, refit, base, extra, options, floor, start), base.log_likelihood)
+
+
+def fit_member(log: Log, refit: "effect_fit.EffectFit", screen: "effect_fit.EffectFit", extra,
+               options: DiagnoseOptions = DEFAULTS, floor: float | None = None, start: tuple | None = None):
+    """:func:`fit_candidate` without the base: the score test at ``screen`` (a fit without ``extra``, ``floor`` its
+    predicted floor) and, unless screened out, the fit. Returns (candidate, model, poses, (log-likelihood, BIC
+    penalty)); :func:`scored` sets the fitted candidate's delta BIC once the base is known, so that the base can be
+    fitted beside the candidates."""
     t0 = time.perf_counter()
     eff = instantiate([_resolve(extra)], log)[0]
     begin([eff], refit.model, refit.poses)
     order = eff.order if eff.orders else None
     penalty = eff.free_parameters() * np.log(n_data(log))
-    gain = predicted_gain(log, base, eff, floor) if floor is not None and options.screen_share > 0 else None
+    gain = predicted_gain(log, screen, eff, floor) if floor is not None and options.screen_share > 0 else None
     if gain is not None and 2.0 * gain < options.screen_share * penalty:
-        return Candidate(eff.name, eff.channel, float(penalty - 2.0 * gain), float("nan"), eff.physics, gain,
-                         {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True), None, None
+        return (Candidate(eff.name, eff.channel, float(penalty - 2.0 * gain), float("nan"), eff.physics, gain,
+                          {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True),
+                None, None, None)
     model, poses = start if start is not None else (refit.model, refit.poses)
     f = effect_fit.fit(log, model, poses, refit.effects + [eff], rounds=options.candidate_rounds,
                        iterations=options.candidate_iterations)
-    dll = f.log_likelihood - base.log_likelihood
-    dbic = -2.0 * dll + penalty
-    c = Candidate(eff.name, eff.channel, float(dbic), float("nan"), eff.physics, float(dll),
+    c = Candidate(eff.name, eff.channel, float("nan"), float("nan"), eff.physics, float("nan"),
                   f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=order,
                   prediction=predicted_sightings(f.problem, f.state))
-    return c, f.model, f.poses
+    return c, f.model, f.poses, (f.log_likelihood, penalty)
 
 
-def _fit_task(args):
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    return fit_candidate(*args)
+def scored(member: tuple, base_log_likelihood: float) -> tuple:
+    """(candidate, model, poses) of a :func:`fit_member`, a fitted one's delta log-likelihood and delta BIC against
+    the base's log-likelihood."""
+    c, model, poses, fitted = member
+    if fitted is not None:
+        ll, penalty = fitted
+        dll = ll - base_log_likelihood
+        c.delta_log_likelihood, c.delta_bic = float(dll), float(-2.0 * dll + penalty)
+    return c, model, poses
 
 
-def _heldout_task(args):
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    log, model, poses, effects, options = args
-    return heldout_log_likelihood(log, model, poses, [_resolve(e) for e in effects], options=options)
+def _call(task):
+    """One (function, arguments) task of :func:`_parallel`."""
+    fn, args = task
+    return fn(*args)
 
 
 def _worker_signals():
-    """Workers leave interrupts to the parent (which terminates them) and die quietly on SIGTERM."""
+    """Workers leave interrupts to the parent (which terminates them), die quietly on SIGTERM and run their BLAS
+    on one thread (the workers share the cores)."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list:
-    """``fn`` over ``tasks`` in worker processes (serially when one worker, or when a task cannot be pickled),
-    or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
+def _parallel(calls: list, workers: int, progress=None, client=None) -> list:
+    """The (function, arguments) ``calls`` in worker processes, in order (serially when one worker, or when a call
+    cannot be pickled), or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
 
     On any exception or signal the workers are terminated (the cluster's tasks cancelled) before it
     propagates, so none outlive the caller."""
-    if client is not None and len(tasks) > 1:
-        futures = client.map(fn, tasks, pure=False)
+    if client is not None and len(calls) > 1:
+        futures = client.map(_call, calls, pure=False)
         try:
             results = []
             for f in futures:
@@ -136,10 +163,10 @@ def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list
             client.cancel(futures)
             raise
     results = []
-    if workers > 1 and len(tasks) > 1:
-        pool = multiprocessing.Pool(min(workers, len(tasks)), initializer=_worker_signals)
+    if workers > 1 and len(calls) > 1:
+        pool = multiprocessing.Pool(min(workers, len(calls)), initializer=_worker_signals)
         try:
-            for r in pool.imap(fn, tasks):
+            for r in pool.imap(_call, calls):
                 results.append(r)
                 if progress is not None:
                     progress.step(1)
@@ -150,8 +177,8 @@ def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list
             results = []
         finally:
             pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
-    for t in tasks:
-        results.append(fn(t))
+    for c in calls:
+        results.append(_call(c))
         if progress is not None:
             progress.step(1)
     return results
@@ -160,7 +187,7 @@ def _parallel(fn, tasks: list, workers: int, progress=None, client=None) -> list
 def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
                    progress=None, client=None, options: DiagnoseOptions = DEFAULTS) -> None:
     """Held-out scores (``heldout_nll_drop``) for the fitted candidates that improve BIC, lowest delta BIC first,
-    ``workers`` models a round (the base model with the first): once one is supported (:func:`is_supported`),
+    ``workers`` models a round (the base model with the first; each fold a task): once one is supported (:func:`is_supported`),
     only those within the look-alike margin of it can still change the verdict or its look-alike group, and the
     rest keep ``heldout_skipped`` = :data:`DECIDED`. The folds are most of a diagnosis's cost.
 
@@ -171,16 +198,18 @@ def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callabl
     if not queue:
         return
     if progress is not None:
-        progress.stage("held-out", len(queue) + 1, unit="models")
+        progress.stage("held-out", (len(queue) + 1) * o.folds, unit="folds")
     present = [spec(type(e)) for e in base.effects]
     margin = max(o.bic_tie, o.lookalike_bic)
     base_score = None
     while queue:
         take = queue[:max(workers - (base_score is None), 1)]
         queue = queue[len(take):]
-        tasks = ([(log, base.model, base.poses, present, o)] if base_score is None else []) + [
-            (log, fitted[i][1], fitted[i][2], present + [spec(members[i])], o) for i in take]
-        held = _parallel(_heldout_task, tasks, workers, progress, client)
+        runs = ([(base.model, base.poses, present)] if base_score is None else []) + [
+            (fitted[i][1], fitted[i][2], present + [spec(members[i])]) for i in take]
+        pairs = _parallel([(heldout_fold, (log, m, p, e, k, o)) for m, p, e in runs for k in range(o.folds)],
+                          workers, progress, client)           # every fold of every model a task: none waits
+        held = [sum(w - wo for w, wo in pairs[j * o.folds:(j + 1) * o.folds]) for j in range(len(runs))]
         if base_score is None:
             base_score, held = held[0], held[1:]
         for i, h in zip(take, held):
@@ -192,7 +221,7 @@ def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callabl
             for i in set(queue) - set(left):
                 fitted[i][0].heldout_skipped = DECIDED
             if progress is not None and len(left) < len(queue):
-                progress.step(len(queue) - len(left))
+                progress.step((len(queue) - len(left)) * o.folds)
             queue = left
 
 
@@ -220,9 +249,7 @@ class TableBench(Bench):
         self.present = present = of_model(model.effects, extra_effects)
         self.fit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds,
                                   iterations=o.candidate_iterations)
-        # the reference every candidate is scored against: the same warm-started procedure, nothing added
-        self.base = effect_fit.fit(log, self.fit.model, self.fit.poses, present, rounds=o.candidate_rounds,
-                                   iterations=o.candidate_iterations)
+        self.base = None             # the fit the candidates are scored against: made beside them (:meth:`score`)
         self.problem, self.state, self.poses = self.fit.problem, self.fit.state, self.fit.poses
 
     def score(self, structure: list[dict]) -> tuple[list[Candidate], dict, dict, dict]:
@@ -238,10 +265,15 @@ class TableBench(Bench):
                 todo.append(cls)
         members = [m for cls in todo for m in family_members(cls)]
         if progress is not None:
-            progress.stage("candidates", len(members), unit="effects")
-        floor = predicted_floor(self.base.problem, self.base.state) if o.screen_share > 0 else None
-        fitted = _parallel(_fit_task, [(log, self.fit, self.base, spec(m), o, floor) for m in members], self.workers,
-                           progress, self.client)
+            progress.stage("candidates", len(members) + 1, unit="fits")
+        # the score test screens at the refit; the base every candidate is scored against (the same warm-started
+        # procedure, nothing added) is fitted beside them, last, where it fills a worker the others left idle
+        floor = predicted_floor(self.fit.problem, self.fit.state) if o.screen_share > 0 else None
+        *fitted, self.base = _parallel(
+            [(fit_member, (log, self.fit, self.fit, spec(m), o, floor)) for m in members]
+            + [(effect_fit.fit, (log, self.fit.model, self.fit.poses, self.present, None, o.candidate_rounds,
+                                 o.candidate_iterations))], self.workers, progress, self.client)
+        fitted = [scored(f, self.base.log_likelihood) for f in fitted]
         keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
         fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
         self.settle_leaders(fitted, members)
@@ -267,13 +299,16 @@ class TableBench(Bench):
         if len(leaders) < 2:
             return
         if self.progress is not None:
-            self.progress.stage("settling the leaders", len(leaders), unit="effects")
+            self.progress.stage("settling the leaders", len(leaders) + 1, unit="fits")
         more = replace(o, candidate_rounds=o.leader_rounds - o.candidate_rounds)
         self.options = replace(o, candidate_rounds=o.leader_rounds)      # a proposal, fitted from the start
-        self.base = effect_fit.fit(self.log, self.base.model, self.base.poses, self.present,
-                                   rounds=more.candidate_rounds, iterations=o.candidate_iterations)
-        again = _parallel(_fit_task, [(self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:])
-                                      for i in leaders], self.workers, self.progress, self.client)
+        *again, self.base = _parallel(
+            [(fit_member, (self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:]))
+             for i in leaders]
+            + [(effect_fit.fit, (self.log, self.base.model, self.base.poses, self.present, None,
+                                 more.candidate_rounds, o.candidate_iterations))], self.workers, self.progress,
+            self.client)
+        again = [scored(a, self.base.log_likelihood) for a in again]
         for i, (c, m, p) in zip(leaders, again):
             old = fitted[i][0]
             if old.orders:
