@@ -78,7 +78,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     bad = [m for m in a.methods if m.partition(":")[0] not in METHODS]
     if bad:
-        ap.error(f"unknown method(s) {bad}; known: {', '.join(METHODS)} (optionally :distance or :inverse_distance)")
+        ap.error(f"unknown method(s) {bad}; known: {', '.join(METHODS)} "
+                 "(optionally :distance or :inverse_distance)")
     rows = {}
     print("| log | method | speed / turn map vs graph, % of range | speed / turn map vs Vicon's, % | position RMS m | s |")
     print("|---|---|---:|---:|---:|---:|")

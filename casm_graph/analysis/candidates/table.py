@@ -187,9 +187,10 @@ def _parallel(calls: list, workers: int, progress=None, client=None) -> list:
 def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
                    progress=None, client=None, options: DiagnoseOptions = DEFAULTS) -> None:
     """Held-out scores (``heldout_nll_drop``) for the fitted candidates that improve BIC, lowest delta BIC first,
-    ``workers`` models a round (the base model with the first; each fold a task): once one is supported (:func:`is_supported`),
-    only those within the look-alike margin of it can still change the verdict or its look-alike group, and the
-    rest keep ``heldout_skipped`` = :data:`DECIDED`. The folds are most of a diagnosis's cost.
+    ``workers`` models a round (the base model with the first; each fold a task): once one is supported
+    (:func:`is_supported`), only those within the look-alike margin of it can still change the verdict or its
+    look-alike group, and the rest keep ``heldout_skipped`` = :data:`DECIDED`. The folds are most of a diagnosis's
+    cost.
 
     ``fitted``: (candidate, model, poses) per member of ``members`` (their classes)."""
     o = options
