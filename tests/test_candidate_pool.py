@@ -1,9 +1,21 @@
-"""An action table's candidates fitted on worker processes (the base beside them, every held-out fold a task) give
-the diagnosis one process gives."""
+"""A diagnosis's candidates fitted on worker processes (an action table's base beside them and every held-out fold a
+task; a command map's base, profiles and hooked effects side by side) give the diagnosis one process gives."""
 import numpy as np
 
 import casm_graph as cg
 from casm_graph.sim.aibo import SimConfig, simulate, write
+from tests.worlds.independent_world import generate
+
+
+def same(one, two):
+    """The two diagnoses' verdicts and candidates, number for number."""
+    assert one.verdict == two.verdict
+    assert [c.spec for c in one.candidates] == [c.spec for c in two.candidates]
+    for a, b in zip(one.candidates, two.candidates):
+        assert (a.screened, a.heldout_skipped) == (b.screened, b.heldout_skipped)
+        np.testing.assert_array_equal([a.delta_bic, a.delta_log_likelihood, a.heldout_nll_drop],
+                                      [b.delta_bic, b.delta_log_likelihood, b.heldout_nll_drop])
+        assert a.parameters == b.parameters
 
 
 def test_two_workers_give_the_one_process_diagnosis(tmp_path):
@@ -13,12 +25,23 @@ def test_two_workers_give_the_one_process_diagnosis(tmp_path):
     cal = cg.calibrate(log, seed=3)
     asked = ["actuator_lag", "camera_latency", "battery_fade", "surface_friction"]
     one, two = (cg.diagnose(log, cal, candidates=asked, workers=w) for w in (1, 2))
-    assert one.verdict == two.verdict == "actuator_lag"
+    assert two.verdict == "actuator_lag"
     lag = next(c for c in two.candidates if c.effect == "actuator_lag")
     assert lag.delta_bic < -10 and lag.heldout_nll_drop > 0               # fitted and scored on the folds
     assert any(c.screened for c in two.candidates)                       # the score test screened some out
-    for a, b in zip(one.candidates, two.candidates):
-        assert (a.spec, a.screened, a.heldout_skipped) == (b.spec, b.screened, b.heldout_skipped)
-        np.testing.assert_array_equal([a.delta_bic, a.delta_log_likelihood, a.heldout_nll_drop],
-                                      [b.delta_bic, b.delta_log_likelihood, b.heldout_nll_drop])
-        assert a.parameters == b.parameters
+    same(one, two)
+
+
+def test_a_command_map_s_candidates_on_two_workers(tmp_path):
+    """Continuous commands with a second-order lag (the independent world): the lag's profile, hooked effects (a
+    latency, a fade, a friction field) and a noise effect, and, with ``decide_rounds``, the leaders (the lag and the
+    latency) settled again on the workers."""
+    generate(tmp_path / "log", kind="continuous", minutes=2, seed=1, effect="actuator_lag")
+    log = cg.load_log(tmp_path / "log")
+    cal = cg.calibrate(log, seed=1)
+    asked = ["actuator_lag", "camera_latency", "battery_fade", "surface_friction", "range_dependent_noise"]
+    decide = cg.DiagnoseOptions(decide_rounds=6)
+    one, two = (cg.diagnose(log, cal, candidates=asked, workers=w, options=decide) for w in (1, 2))
+    assert {c.effect for c in two.candidates[:2]} == {"actuator_lag", "camera_latency"}
+    assert two.candidates[0].delta_bic < -10
+    same(one, two)

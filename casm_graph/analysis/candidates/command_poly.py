@@ -15,6 +15,7 @@ from functools import cached_property, partial
 import numpy as np
 
 from casm_graph.analysis.candidates.base import Bench
+from casm_graph.analysis.candidates.pool import call, parallel
 from casm_graph.analysis.diagnosis import (DEFAULTS, NO_FOLDS, Candidate, DiagnoseOptions, best_of_family,
                                            chosen_candidates, family_members, folds, leading, predicted_sightings,
                                            standardised)
@@ -31,6 +32,30 @@ from casm_graph.models.model import Model
 
 WHAT = {"actuator_lag": "For continuous commands: the velocity follows the command map through a lag of mean delay "
                         "{:.3f} s ({} first-order stage{})."}
+
+
+def settled(log: Log, lay, model: Model, use, start: np.ndarray, effects, rounds: int, iterations: int) -> tuple:
+    """(log-likelihood, model, the sightings it predicts) of ``model`` with ``effects`` settled on the coarse graph
+    ``lay`` from knot poses ``start`` (:func:`casm_graph.fit.continuous.settled_log_likelihood`): a worker's task."""
+    ll, m, pb, st = CT.settled_log_likelihood(log, lay, model, use, start, effects, rounds=rounds,
+                                              iterations=iterations)
+    return ll, m, predicted_sightings(pb, st)
+
+
+def settled_hooked(log: Log, lay, model: Model, poses: np.ndarray, use, start: np.ndarray, own, e, rounds: int,
+                   iterations: int) -> tuple:
+    """:func:`settled` with the hooked effect ``e`` added, started from ``poses`` (T+1, 3) as a fit starts it."""
+    augmented.begin([e], model, poses)
+    return settled(log, lay, model, use, start, [*own, e], rounds, iterations)
+
+
+def settled_profiled(log: Log, fit: Fit, name: str, own, search, knot_dt: float, lay, use, start: np.ndarray,
+                     rounds: int) -> tuple:
+    """A profiled effect's candidate: its profile (:func:`casm_graph.fit.continuous.profile`) on the coarse graph,
+    the model with it at its maximum, and that model :func:`settled`."""
+    prof = CT.profile(log, fit, name, own, options=search, knot_dt=knot_dt)
+    lagged = CT.with_effect(fit.model, name, prof.value, prof.order)
+    return (prof, lagged) + settled(log, lay, lagged, use, start, own, rounds, search.iterations)
 
 
 def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
@@ -128,8 +153,9 @@ class CommandBench(Bench):
     from one to the next). With ``options.decide_rounds`` above that (off by default), the leaders (the candidates
     a verdict or a look-alike group could name) and the base are then settled until their log-likelihoods stop
     moving: an effect whose optimum lies away from the base's poses needs more rounds to reach it than one whose
-    optimum is near. The knot spacings are the calibration's (``calibrated.command_graph``), else the model's own
-    (:func:`casm_graph.fit.continuous.options_of`)."""
+    optimum is near. The base, the profiles and the hooked effects settle side by side on ``workers`` processes or
+    a Dask ``client`` (:mod:`casm_graph.analysis.candidates.pool`). The knot spacings are the calibration's
+    (``calibrated.command_graph``), else the model's own (:func:`casm_graph.fit.continuous.options_of`)."""
 
     kind = "command_poly"
 
@@ -137,7 +163,7 @@ class CommandBench(Bench):
                  extra_effects=(), candidates=None, workers: int = 2, client=None, progress=None, calibrated=None):
         super().__init__(log, model, poses, options)
         o = options
-        self.extra_effects, self.progress = extra_effects, progress
+        self.extra_effects, self.progress, self.workers, self.client = extra_effects, progress, workers, client
         graph = calibrated.command_graph if calibrated is not None else CT.options_of(model)
         self.graph = graph
         self.search = replace(graph.profile, lag_order_support=o.lag_order_support)    # the diagnosis's own support
@@ -168,19 +194,21 @@ class CommandBench(Bench):
     def wanted(self, name: str) -> bool:
         return self.chosen is None or name in self.chosen
 
-    def settle_base(self, rounds: int):
-        return CT.settled_log_likelihood(self.log, self.coarse, self.model, self.cuse, self.start, self.own,
-                                         rounds=rounds, iterations=self.search.iterations)
+    def settle_base(self, rounds: int) -> tuple:
+        """The base's task: (:func:`settled`, its arguments)."""
+        return settled, (self.log, self.coarse, self.model, self.cuse, self.start, self.own, rounds,
+                         self.search.iterations)
 
-    def settle_hooked(self, rounds: int, e):
-        """A hooked effect's candidate (the proposal's too), settled as the base is."""
-        augmented.begin([e], self.model, self.poses)
-        return CT.settled_log_likelihood(self.log, self.coarse, self.model, self.cuse, self.start, [*self.own, e],
-                                         rounds=rounds, iterations=self.search.iterations)
+    def settle_hooked(self, rounds: int, e) -> tuple:
+        """A hooked effect's candidate (the proposal's too), settled as the base is: (:func:`settled_hooked`, its
+        arguments)."""
+        return settled_hooked, (self.log, self.coarse, self.model, self.poses, self.cuse, self.start, self.own, e,
+                                rounds, self.search.iterations)
 
-    def settle_profiled(self, rounds: int, lagged: Model):
-        return CT.settled_log_likelihood(self.log, self.coarse, lagged, self.cuse, self.start, self.own,
-                                         rounds=rounds, iterations=self.search.iterations)
+    def settle_profiled(self, rounds: int, lagged: Model) -> tuple:
+        """A profiled effect's model, settled again: (:func:`settled`, its arguments)."""
+        return settled, (self.log, self.coarse, lagged, self.cuse, self.start, self.own, rounds,
+                         self.search.iterations)
 
     def score(self, structure: list[dict]) -> tuple[list[Candidate], dict, dict, dict]:
         o, log, model, progress, n = self.options, self.log, self.model, self.progress, self.n
@@ -188,46 +216,48 @@ class CommandBench(Bench):
         cands = []
         hooked = [e for e in hooked if self.wanted(e.name)]
         todo = [m for m in CT.EFFECTS if CT.effect_value(model, m) == 0 and m not in skipped and self.wanted(m)]
+        fitted = [e for e in hooked if not e.noise_only]
         if progress is not None and todo + hooked:
-            progress.stage("candidates", len(todo) + len(hooked), unit="effects")
+            progress.stage("candidates", 1 + len(todo) + len(hooked), unit="fits")
         settles = {}              # candidate -> how to settle it again, for the leaders' decision
-        if todo or hooked:        # every candidate scored against one base, settled as they are
-            self.ll0, _, pb0, st0 = self.settle_base(o.settle_rounds)
-            self.base_prediction = predicted_sightings(pb0, st0)
-        for name in todo:
-            prof = CT.profile(log, self.fit, name, self.own, options=self.search, knot_dt=self.graph.coarse_knot_dt)
-            lagged = CT.with_effect(model, name, prof.value, prof.order)
-            ll, _, pb, s = self.settle_profiled(o.settle_rounds, lagged)
-            gain = float(ll - self.ll0)
-            eff = REGISTRY[name]
-            (param,) = eff.params
-            what = WHAT[name].format(prof.value, prof.order, "s" if prof.order > 1 else "")
-            cands.append(Candidate(effect=name, channel=eff.channel, delta_bic=-2 * gain + prof.order * np.log(n),
-                                   heldout_nll_drop=float("nan"), explanation=f"{what} {eff.physics}",
-                                   delta_log_likelihood=gain,
-                                   parameters={param: prof.value, **({"order": prof.order} if prof.order > 1 else {})},
-                                   heldout_skipped=NO_FOLDS,
-                                   prediction=predicted_sightings(pb, s)))
-            settles[id(cands[-1])] = (partial(self.settle_profiled, lagged=lagged), prof.order)
-            if progress is not None:
-                progress.step(1)
-        for e in hooked:
-            if e.noise_only:                  # scored at the base's poses, without a refit
-                cands.append(noise_candidate(log, model, self.poses, self.own, e, self.cuse, n, o, self.leverage))
-                if progress is not None:
-                    progress.step(1)
-                continue
-            ll, m, pb, s = self.settle_hooked(o.settle_rounds, e)
-            gain = float(ll - self.ll0)
-            cands.append(Candidate(effect=e.name, channel=e.channel,
-                                   delta_bic=-2 * gain + e.free_parameters() * np.log(n),
-                                   heldout_nll_drop=float("nan"), explanation=e.physics, delta_log_likelihood=gain,
-                                   parameters=dict(m.effects.get(e.name, {})), order=e.order if e.orders else None,
-                                   heldout_skipped=NO_FOLDS,
-                                   prediction=predicted_sightings(pb, s)))
-            settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
-            if progress is not None:
-                progress.step(1)
+        if todo or hooked:        # every candidate scored against one base, settled as they are, side by side
+            done = parallel([self.settle_base(o.settle_rounds)]
+                            + [(settled_profiled, (log, self.fit, name, self.own, self.search,
+                                                   self.graph.coarse_knot_dt, self.coarse, self.cuse, self.start,
+                                                   o.settle_rounds)) for name in todo]
+                            + [self.settle_hooked(o.settle_rounds, e) for e in fitted],
+                            self.workers, progress, self.client)
+            self.ll0, _, self.base_prediction = done[0]
+            profiled, settled_fits = done[1:1 + len(todo)], iter(done[1 + len(todo):])
+            for name, (prof, lagged, ll, _, prediction) in zip(todo, profiled):
+                gain = float(ll - self.ll0)
+                eff = REGISTRY[name]
+                (param,) = eff.params
+                what = WHAT[name].format(prof.value, prof.order, "s" if prof.order > 1 else "")
+                cands.append(Candidate(effect=name, channel=eff.channel,
+                                       delta_bic=-2 * gain + prof.order * np.log(n),
+                                       heldout_nll_drop=float("nan"), explanation=f"{what} {eff.physics}",
+                                       delta_log_likelihood=gain,
+                                       parameters={param: prof.value,
+                                                   **({"order": prof.order} if prof.order > 1 else {})},
+                                       heldout_skipped=NO_FOLDS, prediction=prediction))
+                settles[id(cands[-1])] = (partial(self.settle_profiled, lagged=lagged), prof.order)
+            for e in hooked:
+                if e.noise_only:                  # scored at the base's poses, without a refit
+                    cands.append(noise_candidate(log, model, self.poses, self.own, e, self.cuse, n, o,
+                                                 self.leverage))
+                    if progress is not None:
+                        progress.step(1)
+                    continue
+                ll, m, prediction = next(settled_fits)
+                gain = float(ll - self.ll0)
+                cands.append(Candidate(effect=e.name, channel=e.channel,
+                                       delta_bic=-2 * gain + e.free_parameters() * np.log(n),
+                                       heldout_nll_drop=float("nan"), explanation=e.physics,
+                                       delta_log_likelihood=gain, parameters=dict(m.effects.get(e.name, {})),
+                                       order=e.order if e.orders else None, heldout_skipped=NO_FOLDS,
+                                       prediction=prediction))
+                settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
         cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
         cands.sort(key=lambda c: c.delta_bic)
         self.decide(cands, settles)
@@ -246,24 +276,21 @@ class CommandBench(Bench):
             return
         self.rounds = o.decide_rounds
         if self.progress is not None:
-            self.progress.stage("settling the leaders", len(leaders), unit="effects")
-        self.ll0, _, pb0, st0 = self.settle_base(o.decide_rounds)
-        self.base_prediction = predicted_sightings(pb0, st0)
-        for c in leaders:
-            again, k = settles[id(c)]
-            ll, m, pb, s = again(o.decide_rounds)
+            self.progress.stage("settling the leaders", len(leaders) + 1, unit="fits")
+        done = parallel([self.settle_base(o.decide_rounds)] + [settles[id(c)][0](o.decide_rounds) for c in leaders],
+                        self.workers, self.progress, self.client)
+        self.ll0, _, self.base_prediction = done[0]
+        for c, (ll, m, prediction) in zip(leaders, done[1:]):
             c.parameters = dict(m.effects.get(c.effect, c.parameters))    # a hooked effect's moved with the rounds
             c.delta_log_likelihood = float(ll - self.ll0)
-            c.delta_bic = -2 * c.delta_log_likelihood + k * np.log(n)
-            c.prediction = predicted_sightings(pb, s)
-            if self.progress is not None:
-                self.progress.step(1)
+            c.delta_bic = -2 * c.delta_log_likelihood + settles[id(c)][1] * np.log(n)
+            c.prediction = prediction
         cands.sort(key=lambda c: c.delta_bic)
 
     def challenge(self, cls) -> tuple[float, float]:
         """The proposal, settled as a hooked candidate against the same base."""
         e = cls(self.log)
-        gain = float(self.settle_hooked(self.rounds, e)[0] - self.ll0)
+        gain = float(call(self.settle_hooked(self.rounds, e))[0] - self.ll0)
         return gain, -2 * gain + e.free_parameters() * np.log(self.n)
 
     @property

@@ -1,13 +1,10 @@
 """An action table's candidates: each effect added to the refitted model and fitted as the calibration fits
 (warm start), scored by delta BIC against the same procedure without it and, for those that lower it, by the
 held-out log-likelihood on time-blocked folds (:func:`heldout_log_likelihood`). The score test screens out the
-candidates that cannot gain enough to be worth fitting; the fits run on worker processes or a Dask cluster."""
+candidates that cannot gain enough to be worth fitting; the fits run on worker processes or a Dask cluster
+(:mod:`casm_graph.analysis.candidates.pool`)."""
 from __future__ import annotations
 
-import multiprocessing
-import os
-import pickle
-import signal
 import time
 from dataclasses import replace
 from typing import Callable
@@ -15,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from casm_graph.analysis.candidates.base import Bench
+from casm_graph.analysis.candidates.pool import parallel
 from casm_graph.analysis.diagnosis import (DECIDED, DEFAULTS, SCREENED, Candidate, DiagnoseOptions, best_of_family,
                                            built_for, chosen_candidates, folds, family_members, is_supported,
                                            leading,
@@ -130,60 +128,6 @@ def scored(member: tuple, base_log_likelihood: float) -> tuple:
     return c, model, poses
 
 
-def _call(task):
-    """One (function, arguments) task of :func:`_parallel`."""
-    fn, args = task
-    return fn(*args)
-
-
-def _worker_signals():
-    """Workers leave interrupts to the parent (which terminates them), die quietly on SIGTERM and run their BLAS
-    on one thread (the workers share the cores)."""
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _parallel(calls: list, workers: int, progress=None, client=None) -> list:
-    """The (function, arguments) ``calls`` in worker processes, in order (serially when one worker, or when a call
-    cannot be pickled), or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
-
-    On any exception or signal the workers are terminated (the cluster's tasks cancelled) before it
-    propagates, so none outlive the caller."""
-    if client is not None and len(calls) > 1:
-        futures = client.map(_call, calls, pure=False)
-        try:
-            results = []
-            for f in futures:
-                results.append(f.result())
-                if progress is not None:
-                    progress.step(1)
-            return results
-        except BaseException:
-            client.cancel(futures)
-            raise
-    results = []
-    if workers > 1 and len(calls) > 1:
-        pool = multiprocessing.Pool(min(workers, len(calls)), initializer=_worker_signals)
-        try:
-            for r in pool.imap(_call, calls):
-                results.append(r)
-                if progress is not None:
-                    progress.step(1)
-            pool.close()
-            pool.join()
-            return results
-        except (AttributeError, TypeError, pickle.PicklingError):
-            results = []
-        finally:
-            pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
-    for c in calls:
-        results.append(_call(c))
-        if progress is not None:
-            progress.step(1)
-    return results
-
-
 def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callable, workers: int = 2,
                    progress=None, client=None, options: DiagnoseOptions = DEFAULTS) -> None:
     """Held-out scores (``heldout_nll_drop``) for the fitted candidates that improve BIC, lowest delta BIC first,
@@ -208,7 +152,7 @@ def heldout_rounds(log: Log, base, fitted: list, members: list, matches: Callabl
         queue = queue[len(take):]
         runs = ([(base.model, base.poses, present)] if base_score is None else []) + [
             (fitted[i][1], fitted[i][2], present + [spec(members[i])]) for i in take]
-        pairs = _parallel([(heldout_fold, (log, m, p, e, k, o)) for m, p, e in runs for k in range(o.folds)],
+        pairs = parallel([(heldout_fold, (log, m, p, e, k, o)) for m, p, e in runs for k in range(o.folds)],
                           workers, progress, client)           # every fold of every model a task: none waits
         held = [sum(w - wo for w, wo in pairs[j * o.folds:(j + 1) * o.folds]) for j in range(len(runs))]
         if base_score is None:
@@ -270,7 +214,7 @@ class TableBench(Bench):
         # the score test screens at the refit; the base every candidate is scored against (the same warm-started
         # procedure, nothing added) is fitted beside them, last, where it fills a worker the others left idle
         floor = predicted_floor(self.fit.problem, self.fit.state) if o.screen_share > 0 else None
-        *fitted, self.base = _parallel(
+        *fitted, self.base = parallel(
             [(fit_member, (log, self.fit, self.fit, spec(m), o, floor)) for m in members]
             + [(effect_fit.fit, (log, self.fit.model, self.fit.poses, self.present, None, o.candidate_rounds,
                                  o.candidate_iterations))], self.workers, progress, self.client)
@@ -303,7 +247,7 @@ class TableBench(Bench):
             self.progress.stage("settling the leaders", len(leaders) + 1, unit="fits")
         more = replace(o, candidate_rounds=o.leader_rounds - o.candidate_rounds)
         self.options = replace(o, candidate_rounds=o.leader_rounds)      # a proposal, fitted from the start
-        *again, self.base = _parallel(
+        *again, self.base = parallel(
             [(fit_member, (self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:]))
              for i in leaders]
             + [(effect_fit.fit, (self.log, self.base.model, self.base.poses, self.present, None,

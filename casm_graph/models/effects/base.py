@@ -50,6 +50,11 @@ class Effect:
         if order is not None or self.order is not None:
             self.set_order(self.order if order is None else order)
 
+    def __reduce__(self):
+        """An instance travels to a worker process as its class's :func:`spec` (a family member's class is made on
+        demand, so it goes by ``name:order``) and its attributes as they are."""
+        return _rebuilt, (spec(type(self)), self.__dict__)
+
     @classmethod
     def of_order(cls, order: int) -> type["Effect"]:
         """The family member of complexity ``order`` (one class per order, so a name travels as ``name:order``)."""
@@ -165,6 +170,15 @@ def get(name: str) -> type[Effect]:
     except ValueError:
         raise LogError(f"effect {name!r}: the order after ':' must be a whole number") from None
     return REGISTRY[base].of_order(k)
+
+
+def _rebuilt(kind, state: dict) -> Effect:
+    """An effect instance from :meth:`Effect.__reduce__`: the class of ``kind`` (a spec or a class), ``state`` its
+    attributes."""
+    cls = get(kind) if isinstance(kind, str) else kind
+    out = cls.__new__(cls)
+    out.__dict__.update(state)
+    return out
 
 
 def spec(cls: type[Effect]):
