@@ -3,6 +3,8 @@ task; a command map's base, profiles and hooked effects side by side) give the d
 import numpy as np
 
 import casm_graph as cg
+from casm_graph.analysis.candidates.pool import parallel, picklable
+from casm_graph.models.effects import get, spec
 from casm_graph.sim.aibo import SimConfig, simulate, write
 from tests.worlds.independent_world import generate
 
@@ -45,3 +47,17 @@ def test_a_command_map_s_candidates_on_two_workers(tmp_path):
     assert {c.effect for c in two.candidates[:2]} == {"actuator_lag", "camera_latency"}
     assert two.candidates[0].delta_bic < -10
     same(one, two)
+
+
+def test_what_travels_to_the_workers():
+    """A family member (its class made on demand) travels as an instance and by its spec; a class made inside a
+    function cannot travel, so its calls run in this process instead, with the same results."""
+    member = get("surface_friction:0")
+    assert spec(member) == "surface_friction:0" and picklable([(abs, (member(), spec(member)))])
+
+    class Local:
+        pass
+
+    assert not picklable([(abs, (Local,))])
+    assert parallel([(len, ([Local, 1],)), (len, ([],))], workers=2) == [2, 0]
+    assert parallel([(abs, (-3,)), (abs, (2,))], workers=2) == [3, 2]

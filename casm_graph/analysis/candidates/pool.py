@@ -23,6 +23,16 @@ def _worker_signals():
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+def picklable(calls: list) -> bool:
+    """Whether ``calls`` can travel to worker processes (checked before any starts: a user's effect class made
+    inside a function cannot)."""
+    try:
+        pickle.dumps(calls)
+    except (AttributeError, TypeError, pickle.PicklingError):
+        return False
+    return True
+
+
 def parallel(calls: list, workers: int, progress=None, client=None) -> list:
     """The (function, arguments) ``calls`` in worker processes, results in order (serially when one worker, or when a
     call cannot be pickled), or as tasks on a Dask cluster when ``client`` (a ``distributed.Client``) is given.
@@ -42,7 +52,7 @@ def parallel(calls: list, workers: int, progress=None, client=None) -> list:
             client.cancel(futures)
             raise
     results = []
-    if workers > 1 and len(calls) > 1:
+    if workers > 1 and len(calls) > 1 and picklable(calls):
         pool = multiprocessing.Pool(min(workers, len(calls)), initializer=_worker_signals)
         try:
             for r in pool.imap(call, calls):
@@ -52,8 +62,6 @@ def parallel(calls: list, workers: int, progress=None, client=None) -> list:
             pool.close()
             pool.join()
             return results
-        except (AttributeError, TypeError, pickle.PicklingError):
-            results = []
         finally:
             pool.terminate()                  # an interrupt or a failure stops the workers, none left behind
     for c in calls:
