@@ -191,7 +191,7 @@ class TableBench(Bench):
         if progress is not None:
             progress.stage("refit model", None)
         self.present_names = set(model.effects)
-        self.present = present = of_model(model.effects, extra_effects)
+        self.present = present = [spec(c) for c in of_model(model.effects, extra_effects)]   # as they travel
         self.fit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds,
                                   iterations=o.candidate_iterations)
         self.base = None             # the fit the candidates are scored against: made beside them (:meth:`score`)
@@ -216,7 +216,7 @@ class TableBench(Bench):
         floor = predicted_floor(self.fit.problem, self.fit.state) if o.screen_share > 0 else None
         *fitted, self.base = parallel(
             [(fit_member, (log, self.fit, self.fit, spec(m), o, floor)) for m in members]
-            + [(effect_fit.fit, (log, self.fit.model, self.fit.poses, [spec(c) for c in self.present], None,
+            + [(effect_fit.fit, (log, self.fit.model, self.fit.poses, self.present, None,
                                  o.candidate_rounds, o.candidate_iterations))], self.workers, progress, self.client)
         fitted = [scored(f, self.base.log_likelihood) for f in fitted]
         keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
@@ -250,7 +250,7 @@ class TableBench(Bench):
         *again, self.base = parallel(
             [(fit_member, (self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:]))
              for i in leaders]
-            + [(effect_fit.fit, (self.log, self.base.model, self.base.poses, [spec(c) for c in self.present], None,
+            + [(effect_fit.fit, (self.log, self.base.model, self.base.poses, self.present, None,
                                  more.candidate_rounds, o.candidate_iterations))], self.workers, self.progress,
             self.client)
         again = [scored(a, self.base.log_likelihood) for a in again]
