@@ -10,7 +10,8 @@ basis: the graph holds it as a single vector variable next to the poses and the 
 With the ``actuator_lag`` effect the velocity follows ``f(command)`` through ``lag_order`` cascaded
 first-order lags, each of time constant ``lag / lag_order`` (so ``lag`` is the mean delay whatever the
 order), each stage driven by the previous one's mean over the step (order 2: a critically damped drive);
-the velocity of a step is the lag's mean over it. The lag acts on the basis, so the model stays linear in its
+the velocity of a step is the lag's mean over it (the formulas are the effect's own,
+:mod:`casm_graph.models.effects.actuator_lag`). The lag acts on the basis, so the model stays linear in its
 coefficients; ``velocities(controls)`` without step durations is the steady-state map.
 """
 from __future__ import annotations
@@ -18,9 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from numba import njit
 
 from casm_graph.io.log import LogError
+from casm_graph.models.effects.actuator_lag import lagged, memory
 from casm_graph.models.validate import MAX_POLY, Where, one_line
 from casm_graph.models.velocity_table import VelocityTable, json_number
 
@@ -32,32 +33,6 @@ AXIS_WORDS = (("speed", "m/s"), ("sideways speed", "m/s"), ("turn rate", "rad/s"
 def map_name(axis: int) -> str:
     """The short name of the map onto body axis ``axis`` in reports: speed map, sideways map, turn map."""
     return AXIS_WORDS[axis][0].split()[0] + " map"
-
-
-@njit(cache=True)
-def _first_order(x: np.ndarray, a: np.ndarray, g: np.ndarray) -> np.ndarray:
-    y = np.empty_like(x)
-    y[0] = x[0]
-    end = x[0].copy()
-    for k in range(1, x.shape[0]):
-        y[k] = x[k] + (end - x[k]) * g[k]
-        end = a[k] * end + (1.0 - a[k]) * x[k]
-    return y
-
-
-def lagged(x: np.ndarray, dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
-    """Rows of ``x`` (one per step, held over it) through ``order`` cascaded first-order lags of time constant
-    ``lag / order`` (mean delay ``lag``), from rest at x[0]: each row out is the lag's mean over its step, as
-    the step's displacement needs (the value at the step's end would lead the motion by half a step per stage)."""
-    if lag <= 0:
-        return x
-    r = np.asarray(dt, float) * order / lag
-    a = np.exp(-r)
-    g = np.where(r > 1e-9, -np.expm1(-r) / np.maximum(r, 1e-300), 1.0)    # mean of exp(-t / tau) over the step
-    y = np.ascontiguousarray(x, dtype=float)
-    for _ in range(order):
-        y = _first_order(y, a, g)
-    return y
 
 
 @dataclass(frozen=True)
@@ -133,14 +108,7 @@ class CommandModel:
         """(T,) displacement over each step per unit of velocity offset the lag held when the log began (the
         velocity before the first command, unknown: at rest, or settled at another command), as its stages forget
         it: order 1 exp(-t/a), order 2 (1 + t/a) exp(-t/a), a = lag / order, integrated over the step."""
-        t1 = np.cumsum(np.asarray(dt, float))
-        if self.lag <= 0:
-            return np.zeros_like(t1)
-        a = self.lag / self.lag_order
-        u0, u1 = np.concatenate([[0.0], t1[:-1]]) / a, t1 / a
-        if self.lag_order == 2:
-            return a * ((2 + u0) * np.exp(-u0) - (2 + u1) * np.exp(-u1))
-        return a * (np.exp(-u0) - np.exp(-u1))
+        return memory(dt, self.lag, self.lag_order)
 
     def velocities(self, controls: np.ndarray, dt: np.ndarray | None = None) -> np.ndarray:
         """(n, 3) body-frame (forward, lateral, turn) velocity for each command row (steady state without ``dt``)."""

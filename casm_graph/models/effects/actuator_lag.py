@@ -2,14 +2,60 @@
 
 A family by the drive's stages: order 1 one first-order stage (an exponential approach), order 2 two equal
 stages in cascade (a critically damped drive: the velocity leaves the old one slowly, then settles); both have
-the one parameter ``tau``, so BIC compares them by their fit alone. The action before is taken as settled."""
+the one parameter ``tau``, so BIC compares them by their fit alone. The action before is taken as settled.
+
+On an action table the lag acts through the ``velocity`` hook, per step since the action changed; a command map
+holds its mean delay and order and runs its basis through :func:`lagged` (a continuous command changes every
+step), which keeps the map linear in its coefficients."""
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from casm_graph.models.effects.base import Effect, register
 
 MIN_TAU = 1e-3
+
+
+@njit(cache=True)
+def _first_order(x: np.ndarray, a: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """One first-order stage over rows ``x``: each row out the stage's mean over its step (``g``), ``a`` its decay."""
+    y = np.empty_like(x)
+    y[0] = x[0]
+    end = x[0].copy()
+    for k in range(1, x.shape[0]):
+        y[k] = x[k] + (end - x[k]) * g[k]
+        end = a[k] * end + (1.0 - a[k]) * x[k]
+    return y
+
+
+def lagged(x: np.ndarray, dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
+    """Rows of ``x`` (one per step, held over it) through ``order`` cascaded first-order lags of time constant
+    ``lag / order`` (mean delay ``lag``), from rest at x[0]: each row out is the lag's mean over its step, as
+    the step's displacement needs (the value at the step's end would lead the motion by half a step per stage)."""
+    if lag <= 0:
+        return x
+    r = np.asarray(dt, float) * order / lag
+    a = np.exp(-r)
+    g = np.where(r > 1e-9, -np.expm1(-r) / np.maximum(r, 1e-300), 1.0)    # mean of exp(-t / tau) over the step
+    y = np.ascontiguousarray(x, dtype=float)
+    for _ in range(order):
+        y = _first_order(y, a, g)
+    return y
+
+
+def memory(dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
+    """(T,) displacement over each step of durations ``dt`` per unit of velocity offset the lag held when the log
+    began, as its ``order`` stages of mean delay ``lag`` forget it: order 1 exp(-t/a), order 2 (1 + t/a) exp(-t/a),
+    a = lag / order, integrated over the step."""
+    t1 = np.cumsum(np.asarray(dt, float))
+    if lag <= 0:
+        return np.zeros_like(t1)
+    a = lag / order
+    u0, u1 = np.concatenate([[0.0], t1[:-1]]) / a, t1 / a
+    if order == 2:
+        return a * ((2 + u0) * np.exp(-u0) - (2 + u1) * np.exp(-u1))
+    return a * (np.exp(-u0) - np.exp(-u1))
 
 
 @register
