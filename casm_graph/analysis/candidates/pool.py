@@ -23,14 +23,23 @@ def _worker_signals():
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def picklable(calls: list) -> bool:
-    """Whether ``calls`` can travel to worker processes (checked before any starts: a user's effect class made
-    inside a function cannot)."""
+def _call_packed(blob: bytes):
+    """Run one task that travelled as :func:`packed` bytes."""
+    return call(pickle.loads(blob))
+
+
+def packed(calls: list) -> list[bytes] | None:
+    """Each call pickled, as it travels to a worker process, or None when one cannot be (checked before any
+    worker starts: a user's effect class made inside a function cannot)."""
     try:
-        pickle.dumps(calls)
+        return [pickle.dumps(c, protocol=pickle.HIGHEST_PROTOCOL) for c in calls]
     except (AttributeError, TypeError, pickle.PicklingError):
-        return False
-    return True
+        return None
+
+
+def picklable(calls: list) -> bool:
+    """Whether ``calls`` can travel to worker processes."""
+    return packed(calls) is not None
 
 
 def parallel(calls: list, workers: int, progress=None, client=None) -> list:
@@ -52,10 +61,11 @@ def parallel(calls: list, workers: int, progress=None, client=None) -> list:
             client.cancel(futures)
             raise
     results = []
-    if workers > 1 and len(calls) > 1 and picklable(calls):
+    blobs = packed(calls) if workers > 1 and len(calls) > 1 else None
+    if blobs is not None:                     # pickled once: the check is the travel
         pool = multiprocessing.Pool(min(workers, len(calls)), initializer=_worker_signals)
         try:
-            for r in pool.imap(call, calls):
+            for r in pool.imap(_call_packed, blobs):
                 results.append(r)
                 if progress is not None:
                     progress.step(1)
