@@ -157,6 +157,42 @@ def test_friction_field_extent_is_recorded_restored_and_drawn(tmp_path):
     assert "Surface friction on the field" in (tmp_path / "run" / "report.html").read_text()
 
 
+def test_friction_grid_level_is_the_visited_floors():
+    """A grid's level is measured over the steps the robot ran (``visits``), not over its nodes: the field averages
+    zero where the robot went, whatever the nodes it never reached hold, so the field cannot trade the visited
+    floor's speed with the action model (an omni world's calibration had the visited floor 88 % slower, empty
+    corners five times faster and the command map eight times faster). model.json carries ``visits``; an entry
+    without it keeps the nodes' mean."""
+    rng = np.random.default_rng(3)
+    e = get("surface_friction")(extent=(0.0, 0.0, 4.0, 4.0))
+    poses = np.column_stack([rng.uniform(0, 2, 500), rng.uniform(0, 1.5, 500), np.zeros(500)])   # one corner
+    e.begin(None, poses)
+    assert e.visits.sum() == pytest.approx(1.0) and np.count_nonzero(e.visits > 0) < NODES ** 2
+    theta = rng.normal(0, 0.3, NODES ** 2)
+    ran = e.slow(theta, poses[:, :2])
+    assert ran.mean() == pytest.approx(0.0, abs=1e-12)
+    empty = np.flatnonzero(e.visits == 0)
+    pushed = theta.copy()
+    pushed[empty] -= 5.0                                   # empty corners far faster: the visited floor unmoved
+    assert np.allclose(e.slow(pushed, poses[:, :2]), e.slow(theta - 5.0 * e.visits @ np.isin(
+        np.arange(NODES ** 2), empty), poses[:, :2]))
+    assert e.slow(pushed, poses[:, :2]).mean() == pytest.approx(0.0, abs=1e-12)
+    entry = e.describe(theta)
+    back = get("surface_friction")()
+    back.restore(entry)
+    values = np.array([entry[p] for p in back.params])
+    assert np.allclose(back.slow(values, poses[:, :2]), ran)
+    m = Model.from_json({**paper_start(simulate(SimConfig(minutes=0.2, seed=1))[0]).to_json(),
+                         "effects": {"surface_friction": entry}})       # model.json takes it back
+    assert m.effects["surface_friction"]["visits"] == entry["visits"]
+    with pytest.raises(cg.LogError, match="visits"):
+        Model.from_json({**m.to_json(), "effects": {"surface_friction": {**entry, "visits": [0.5] * NODES ** 2}}})
+    old = get("surface_friction")()
+    old.restore({k: v for k, v in entry.items() if k != "visits"})
+    assert old.visits is None and np.allclose(old.slow(values, poses[:, :2]),
+                                              bilinear(poses[:, :2], e.extent) @ (values - values.mean()))
+
+
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     """``surface_friction:K`` is the K x K member; it travels as its name, records its order in model.json and
     comes back as the same member; an order the family lacks is one LogError."""

@@ -207,6 +207,10 @@ def _effects(w: Where, effects) -> dict:
             ext = w.vec(entry.get("extent"), f"effects.{name}.extent", n=4)
             if not (ext[2] > ext[0] and ext[3] > ext[1]):
                 w.fail(f"effects.{name}.extent", "must be [x0, y0, x1, y1] with x1 > x0 and y1 > y0")
+        if entry.get("visits") is not None and "grid" in entry:
+            v = w.vec(entry["visits"], f"effects.{name}.visits", n=int(grid.prod()), nonneg=True)
+            if abs(float(np.sum(v)) - 1.0) > 1e-3:
+                w.fail(f"effects.{name}.visits", "must be shares of the steps that sum to 1")
         if cls.orders and entry.get("order") is not None and entry["order"] not in cls.orders:
             w.fail(f"effects.{name}.order", f"must be one of {list(cls.orders)}")
         if name == "regional_motion_noise":
