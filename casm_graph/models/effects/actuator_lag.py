@@ -44,6 +44,14 @@ def lagged(x: np.ndarray, dt: np.ndarray, lag: float, order: int = 1) -> np.ndar
     return y
 
 
+def _still_held(u0, u1, order: int):
+    """The share of an old velocity a lag of ``order`` equal stages still holds, exp(-u) for one stage and
+    (1 + u) exp(-u) for two, integrated from u0 to u1 (times in units of a stage's time constant)."""
+    if order == 2:
+        return (2 + u0) * np.exp(-u0) - (2 + u1) * np.exp(-u1)
+    return np.exp(-u0) - np.exp(-u1)
+
+
 def memory(dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
     """(T,) displacement over each step of durations ``dt`` per unit of velocity offset the lag held when the log
     began, as its ``order`` stages of mean delay ``lag`` forget it: order 1 exp(-t/a), order 2 (1 + t/a) exp(-t/a),
@@ -52,10 +60,7 @@ def memory(dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
     if lag <= 0:
         return np.zeros_like(t1)
     a = lag / order
-    u0, u1 = np.concatenate([[0.0], t1[:-1]]) / a, t1 / a
-    if order == 2:
-        return a * ((2 + u0) * np.exp(-u0) - (2 + u1) * np.exp(-u1))
-    return a * (np.exp(-u0) - np.exp(-u1))
+    return a * _still_held(np.concatenate([[0.0], t1[:-1]]) / a, t1 / a, order)
 
 
 @register
@@ -79,8 +84,5 @@ class ActuatorLag(Effect):
     def velocity(self, theta, v, ctx):
         tau = max(abs(theta[0]), MIN_TAU)
         a, b = ctx["since"] / tau, (ctx["since"] + ctx["dt"]) / tau
-        if self.order == 2:           # mean over the step of the old velocity's share (1 + t/tau) exp(-t/tau)
-            g = ((2 + a) * np.exp(-a) - (2 + b) * np.exp(-b)) / (b - a)
-        else:                         # mean of exp(-t/tau) over the step
-            g = (np.exp(-a) - np.exp(-b)) / (b - a)
+        g = _still_held(a, b, self.order) / (b - a)        # the old velocity's mean share over the step
         return v + (ctx["v_prev"] - v) * g[:, None]
