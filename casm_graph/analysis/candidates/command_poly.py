@@ -205,6 +205,12 @@ class CommandBench(Bench):
         return settled_hooked, (self.log, self.coarse, self.model, self.poses, self.cuse, self.start, self.own, e,
                                 rounds, self.search.iterations)
 
+    def profile_task(self, name: str, rounds: int) -> tuple:
+        """A profiled effect's candidate, its profile then the model at its maximum settled as the base is:
+        (:func:`settled_profiled`, its arguments)."""
+        return settled_profiled, (self.log, self.fit, name, self.own, self.search, self.graph.coarse_knot_dt,
+                                  self.coarse, self.cuse, self.start, rounds)
+
     def settle_profiled(self, rounds: int, lagged: Model) -> tuple:
         """A profiled effect's model, settled again: (:func:`settled`, its arguments)."""
         return settled, (self.log, self.coarse, lagged, self.cuse, self.start, self.own, rounds,
@@ -222,9 +228,7 @@ class CommandBench(Bench):
         settles = {}              # candidate -> how to settle it again, for the leaders' decision
         if todo or hooked:        # every candidate scored against one base, settled as they are, side by side
             done = parallel([self.settle_base(o.settle_rounds)]
-                            + [(settled_profiled, (log, self.fit, name, self.own, self.search,
-                                                   self.graph.coarse_knot_dt, self.coarse, self.cuse, self.start,
-                                                   o.settle_rounds)) for name in todo]
+                            + [self.profile_task(name, o.settle_rounds) for name in todo]
                             + [self.settle_hooked(o.settle_rounds, e) for e in fitted],
                             self.workers, progress, self.client)
             self.ll0, _, self.base_prediction = done[0]
