@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from casm_graph.analysis.marginal_likelihood import MarginalLikelihood, likelihood
+from casm_graph.analysis.likelihood import MarginalLikelihood, likelihood
 from casm_graph.fit import ekfs
 from casm_graph.fit.methods.ekfs_em import _observations
 from casm_graph.models.model import Model

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from casm_graph.analysis import posterior as P
-from casm_graph.analysis.marginal_likelihood import likelihood
+from casm_graph.analysis.likelihood import likelihood
 from casm_graph.pipeline.bad_data import corrupt, trial
 from casm_graph.pipeline.calibrate import calibrate
 from casm_graph.pipeline.uncertainty import prepare

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.sparse.linalg import splu
 
-from casm_graph.analysis import marginal_likelihood as U
+from casm_graph.analysis.likelihood import table as U
 from casm_graph.analysis.posterior import SamplerOptions, parse_prior
 from casm_graph.cli import main
 from casm_graph.fit import ekfs

@@ -13,7 +13,7 @@ import pytest
 from scipy.optimize import minimize
 
 import casm_graph as cg
-from casm_graph.analysis import marginal_likelihood as U
+from casm_graph.analysis.likelihood import command_poly as U
 from casm_graph.cli import main
 from casm_graph.fit import continuous as CT
 from casm_graph.graph.problem import Problem

@@ -15,7 +15,7 @@ value for effect parameters. Priors (stated in posterior.json, overridable with 
 * ``range_dependent_noise.growth``: uniform on [0, 5] per metre; ``false_detections.fraction``:
   uniform on [0, 0.5].
 
-The likelihood is either of :mod:`casm_graph.analysis.marginal_likelihood` (action table or
+The likelihood is either of :mod:`casm_graph.analysis.likelihood` (action table or
 continuous commands): the sampler sees only its noise levels, so a sensor channel the log does not
 measure has no sigma here and no prior.
 
@@ -34,7 +34,7 @@ import emcee
 import numpy as np
 from scipy.optimize import minimize
 
-from casm_graph.analysis.marginal_likelihood import NoiseLikelihood
+from casm_graph.analysis.likelihood import NoiseLikelihood
 from casm_graph.io.log import LogError
 
 

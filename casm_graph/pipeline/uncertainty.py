@@ -6,7 +6,7 @@ table (or, for continuous commands, the command map) and polynomial at their pos
 std, the Laplace marginals averaged over the noise posterior, the polynomial's covariance and the
 sensor curve's 90 % band where the log measures readings), corner.png, trace.png and report.html.
 Action-table logs use the segment-eliminated table likelihood, continuous-command logs (``v,w``,
-either sensor channel or both) the command-map graph's (:mod:`casm_graph.analysis.marginal_likelihood`).
+either sensor channel or both) the command-map graph's (:mod:`casm_graph.analysis.likelihood`).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from casm_graph.analysis import posterior as P
-from casm_graph.analysis.marginal_likelihood import NoiseLikelihood, noise_likelihood
+from casm_graph.analysis.likelihood import NoiseLikelihood, noise_likelihood
 from casm_graph.fit import trajectory
 from casm_graph.fit.calibration import Calibration, read_truth_model
 from casm_graph.io.identifiability import check_identifiable
