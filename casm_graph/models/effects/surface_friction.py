@@ -182,43 +182,10 @@ def inside(xy: np.ndarray, edges, extent) -> np.ndarray:
 
 
 def patch_start(poses: np.ndarray, commanded: np.ndarray, extent) -> tuple | None:
-    """(slow, west, east, south, north) of the rectangle inside which the steps fell short of their commanded
-    displacement (``commanded``: (T, 3), each step's body displacement under the model) by a different share than
-    outside, the steps that asked for the same velocity compared among themselves (an action model fitted without
-    the patch gives an action run mostly on it the patch's speed); None when the steps barely move. The rectangle of
-    grid cells that separates them best, then each edge moved within a cell of it (:func:`refine_edges`)."""
-    steps = _shortfalls(poses, commanded)
-    if steps is None:
-        return None
-    x0, y0, x1, y1 = extent
-    x, y, group, mid = steps                        # steps beyond the extent count in its border cells
-    mid = np.clip(mid, [x0, y0], [x0 + (1 - 1e-9) * (x1 - x0), y0 + (1 - 1e-9) * (y1 - y0)])
-    steps = (x, y, group, mid)
-    G = int(group.max()) + 1
-    xa = np.bincount(group, x * x, G)
-    i = np.clip(((mid[:, 0] - x0) / (x1 - x0) * CELLS).astype(int), 0, CELLS - 1)
-    j = np.clip(((mid[:, 1] - y0) / (y1 - y0) * CELLS).astype(int), 0, CELLS - 1)
-    sxy, sxx = np.zeros((CELLS + 1, CELLS + 1)), np.zeros((G, CELLS + 1, CELLS + 1))
-    np.add.at(sxy, (i + 1, j + 1), x * y)
-    np.add.at(sxx, (group, i + 1, j + 1), x * x)
-    pxy, pxx = sxy.cumsum(0).cumsum(1), sxx.cumsum(1).cumsum(2)
-    lo, hi = np.triu_indices(CELLS)                 # cell ranges [lo, hi] along one axis
-    a, b, u, v = lo[:, None], hi[:, None] + 1, lo[None, :], hi[None, :] + 1
-    S = pxy[b, v] - pxy[a, v] - pxy[b, u] + pxy[a, u]
-    Xg = pxx[:, b, v] - pxx[:, a, v] - pxx[:, b, u] + pxx[:, a, u]      # per group, inside each rectangle
-    score = _separation(S, Xg, xa)
-    if not np.any(score >= 0):
-        return None
-    k, m = np.unravel_index(np.argmax(score), score.shape)
-    cx, cy = (x1 - x0) / CELLS, (y1 - y0) / CELLS
-    cells = (x0 + lo[k] * cx, x0 + (hi[k] + 1) * cx, y0 + lo[m] * cy, y0 + (hi[m] + 1) * cy)
-    return refine_edges(steps, cells, (cx, cx, cy, cy))
-
-
-def _shortfalls(poses: np.ndarray, commanded: np.ndarray):
-    """Per moving step: its commanded length x, how far it fell short of it (negative) or ran past it along the
-    commanded direction, less its velocity group's mean share (y), its group (the steps that asked for one velocity,
-    or a bin of commanded speed), and its midpoint (n, 2); None with fewer than ten moving steps."""
+    """(slow, west, east, south, north) of the rectangle of grid cells inside which the steps fell short of their
+    commanded displacement (``commanded``: (T, 3), each step's body displacement under the model) by a different
+    share than outside, the steps that asked for the same velocity compared among themselves (an action model fitted
+    without the patch gives an action run mostly on it the patch's speed); None when the steps barely move."""
     d = np.diff(poses[:, :2], axis=0)
     h = poses[:-1, 2] + 0.5 * np.diff(np.unwrap(poses[:, 2]))
     c, s = np.cos(h), np.sin(h)
@@ -238,45 +205,25 @@ def _shortfalls(poses: np.ndarray, commanded: np.ndarray):
     G = int(group.max()) + 1
     xa = np.bincount(group, x * x, G)
     y = y - x * (np.bincount(group, x * y, G) / xa)[group]            # each group's own mean shortfall removed
-    return x, y, group, 0.5 * (poses[:-1, :2] + poses[1:, :2])[ok]
-
-
-def _separation(S: np.ndarray, Xg: np.ndarray, xa: np.ndarray) -> np.ndarray:
-    """The between-group sum of squares S^2 / info of rectangles (``S``: the x-weighted shortfall inside; ``Xg``:
-    per group (first axis), the squared commanded length inside; ``xa``: each group's total), -1 where a rectangle
-    holds or leaves less than ``MIN_SHARE`` of the commanded distance, or its indicator hardly varies within groups."""
+    mid = 0.5 * (poses[:-1, :2] + poses[1:, :2])[ok]
+    x0, y0, x1, y1 = extent
+    i = np.clip(((mid[:, 0] - x0) / (x1 - x0) * CELLS).astype(int), 0, CELLS - 1)
+    j = np.clip(((mid[:, 1] - y0) / (y1 - y0) * CELLS).astype(int), 0, CELLS - 1)
+    sxy, sxx = np.zeros((CELLS + 1, CELLS + 1)), np.zeros((G, CELLS + 1, CELLS + 1))
+    np.add.at(sxy, (i + 1, j + 1), x * y)
+    np.add.at(sxx, (group, i + 1, j + 1), x * x)
+    pxy, pxx = sxy.cumsum(0).cumsum(1), sxx.cumsum(1).cumsum(2)
+    lo, hi = np.triu_indices(CELLS)                 # cell ranges [lo, hi] along one axis
+    a, b, u, v = lo[:, None], hi[:, None] + 1, lo[None, :], hi[None, :] + 1
+    S = pxy[b, v] - pxy[a, v] - pxy[b, u] + pxy[a, u]
+    Xg = pxx[:, b, v] - pxx[:, a, v] - pxx[:, b, u] + pxx[:, a, u]      # per group, inside each rectangle
     X = Xg.sum(0)
-    info = X - np.sum(Xg ** 2 / xa.reshape((-1,) + (1,) * (Xg.ndim - 1)), axis=0)   # the indicator's variance within groups
+    info = X - np.sum(Xg ** 2 / xa[:, None, None], axis=0)            # the indicator's variance left within groups
     fair = (X > MIN_SHARE * xa.sum()) & (X < (1 - MIN_SHARE) * xa.sum()) & (info > MIN_SHARE * X)
-    return np.where(fair, S ** 2 / np.where(fair, info, 1.0), -1.0)
-
-
-def refine_edges(steps, edges, cells, sweeps: int = 3, points: int = 33) -> tuple:
-    """(slow, west, east, south, north): ``edges`` of a rectangle of grid cells each moved, in turn, to the best
-    of ``points`` positions within one cell (``cells``, per edge) of where it is, for ``sweeps`` rounds. Where the
-    robot only clips a carpet's corner, a tenth of a metre at an edge decides which steps are on it (an omni
-    world's carpet: steps across two strips of 12 cm, misplaced by the cell grid, turned the fitted patch inside
-    out)."""
-    x, y, group, mid = steps
-    G = int(group.max()) + 1
-    xa = np.bincount(group, x * x, G)
-    edges = np.array(edges, float)
-
-    def separation(e):
-        on = (mid[:, 0] >= e[0]) & (mid[:, 0] < e[1]) & (mid[:, 1] >= e[2]) & (mid[:, 1] < e[3])
-        Xg = np.bincount(group, x * x * on, G)
-        s = float(np.sum(x * y * on))
-        return float(_separation(np.array(s), Xg, xa)), s, Xg
-
-    best = separation(edges)
-    for _ in range(sweeps):
-        for k in range(4):
-            for at in edges[k] + np.linspace(-cells[k], cells[k], points):
-                trial = edges.copy()
-                trial[k] = at
-                got = separation(trial)
-                if got[0] > best[0]:
-                    best, edges = got, trial
-    _, s, Xg = best
-    info = Xg.sum() - np.sum(Xg ** 2 / xa)
-    return (float(-s / info), *(float(v) for v in edges))
+    if not fair.any():
+        return None
+    score = np.where(fair, S ** 2 / np.where(fair, info, 1.0), -1.0)
+    k, m = np.unravel_index(np.argmax(score), score.shape)
+    cx, cy = (x1 - x0) / CELLS, (y1 - y0) / CELLS
+    return (float(-S[k, m] / info[k, m]), x0 + lo[k] * cx, x0 + (hi[k] + 1) * cx, y0 + lo[m] * cy,
+            y0 + (hi[m] + 1) * cy)
