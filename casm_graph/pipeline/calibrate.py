@@ -7,6 +7,7 @@ effects, and returns the result; ``Calibration.save`` writes the run directory. 
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,6 +21,8 @@ from casm_graph.io.output import checked_out
 from casm_graph.models.effects import get as get_effect
 from casm_graph.report import pages as report
 from factors.reading import BASES
+
+LIKELIHOOD_DROP = 20.0     # nats: a fit with effects this far below its own base's log-likelihood stopped short
 
 SCASM_METHODS = scasm_run.METHODS             # 1-D logs: their own model kinds and report
 
@@ -65,11 +68,28 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
     part.check(log, options, classes)
     start = part.start_model(log, options.sensor_degree, start_basis(options))
     fit = part.calibrate(log, start, options, classes, progress)
+    warn_if_worse(fit, classes)
     return Calibration(log=log, model=fit.model, trajectory=trajectory_array(log.pose_times, fit.poses, fit.pose_std),
                        options=options, fit=fit,
                        write_report=lambda path, cal: report.calibration(path, log, fit, cal,
                                                                          truth=read_truth_model(log.source)),
                        command=command)
+
+
+def warn_if_worse(fit: Fit, classes: list) -> None:
+    """A RuntimeWarning when adding least-squares effects left the log-likelihood below the fit without them: the
+    model with them holds the one without (each effect at its neutral value), so their fit stopped in a local
+    optimum (an omni world's carpet patch: 36,783 without it, 36,477 with its slow-down at -4.3). Noise effects
+    change what the likelihood counts (a mixture scores every sighting) and are not compared."""
+    base = fit.notes.get("base_log_likelihood")
+    if base is None or not classes or any(c.noise_only for c in classes):
+        return
+    if fit.log_likelihood < base - LIKELIHOOD_DROP:
+        names = ", ".join(c.name for c in classes)
+        warnings.warn(f"adding {names} lowered the log-likelihood from {base:,.1f} to {fit.log_likelihood:,.1f}: "
+                      f"the fit stopped in a local optimum from its start, and the model without it explains the "
+                      f"log better (`diagnose` says which form fits; another --seed starts the base elsewhere)",
+                      RuntimeWarning, stacklevel=3)
 
 
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
