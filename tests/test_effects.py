@@ -144,7 +144,8 @@ def test_friction_field_extent_is_recorded_restored_and_drawn(tmp_path):
     t = truth["effects"]["surface_friction"]
     assert t["extent"] == [-2.7, -1.8, 2.7, 1.8]
     assert t[f"slow_{NODES - 1}_0"] - t["slow_0_0"] == pytest.approx(0.2)          # east slower than west by 0.2
-    assert np.mean([t[p] for p in REGISTRY["surface_friction"].params]) == pytest.approx(0.0, abs=1e-12)
+    assert np.mean([t[p] for p in REGISTRY["surface_friction"].params[:-1]]) == pytest.approx(0.0, abs=1e-12)
+    assert t["turn_share"] == 1.0
     cal = cg.calibrate(log, effects=["surface_friction"], seed=5)
     entry = cal.model.effects["surface_friction"]
     x0, y0, x1, y1 = entry["extent"]
@@ -168,7 +169,7 @@ def test_friction_grid_level_is_the_visited_floors():
     poses = np.column_stack([rng.uniform(0, 2, 500), rng.uniform(0, 1.5, 500), np.zeros(500)])   # one corner
     e.begin(None, poses)
     assert e.visits.sum() == pytest.approx(1.0) and np.count_nonzero(e.visits > 0) < NODES ** 2
-    theta = rng.normal(0, 0.3, NODES ** 2)
+    theta = np.append(rng.normal(0, 0.3, NODES ** 2), 1.0)
     ran = e.slow(theta, poses[:, :2])
     assert ran.mean() == pytest.approx(0.0, abs=1e-12)
     empty = np.flatnonzero(e.visits == 0)
@@ -189,7 +190,7 @@ def test_friction_grid_level_is_the_visited_floors():
     old = get("surface_friction")()
     old.restore({k: v for k, v in entry.items() if k != "visits"})
     assert old.visits is None and np.allclose(old.slow(values, poses[:, :2]),
-                                              bilinear(poses[:, :2], e.extent) @ (values - values.mean()))
+                                              bilinear(poses[:, :2], e.extent) @ (values[:-1] - values[:-1].mean()))
 
 
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
@@ -201,15 +202,18 @@ def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     assert get(f"surface_friction:{NODES}") is REGISTRY["surface_friction"]
     assert spec(two) == "surface_friction:2" and spec(REGISTRY["surface_friction"]) == "surface_friction"
     e = two()
-    assert e.params == ("slow_0_0", "slow_1_0", "slow_0_1", "slow_1_1") and e.free_parameters() == 3
+    assert e.params == ("slow_0_0", "slow_1_0", "slow_0_1", "slow_1_1", "turn_share") and e.free_parameters() == 4
     plane = get("surface_friction:1")(extent=(-1.0, -1.0, 1.0, 1.0))
-    assert plane.params == ("tilt_east", "tilt_north") and plane.free_parameters() == 2
-    np.testing.assert_allclose(plane.slow(np.array([0.2, 0.1]), np.array([[1, 0], [-1, 0], [0, 1], [9, 9]])),
+    assert plane.params == ("tilt_east", "tilt_north", "turn_share") and plane.free_parameters() == 3
+    np.testing.assert_allclose(plane.slow(np.array([0.2, 0.1, 1.0]), np.array([[1, 0], [-1, 0], [0, 1], [9, 9]])),
                                [0.1, -0.1, 0.05, 0.15])         # east edge 0.2 slower than west; clamped outside
     patch = get("surface_friction:0")(extent=(-2.0, -2.0, 2.0, 2.0))
-    assert patch.params == ("slow", "west", "east", "south", "north") and patch.free_parameters() == 5
-    np.testing.assert_allclose(patch.slow(np.array([0.2, 0.0, 9.0, -1.0, 1.0]), np.array([[1, 0], [-1, 0], [1, 2]])),
+    assert patch.params == ("slow", "west", "east", "south", "north", "turn_share") and patch.free_parameters() == 6
+    theta = np.array([0.2, 0.0, 9.0, -1.0, 1.0, 0.5])
+    np.testing.assert_allclose(patch.slow(theta, np.array([[1, 0], [-1, 0], [1, 2]])),
                                [0.2, 0.0, 0.0], atol=1e-4)       # on the rug, west of it, north of it
+    v = patch.velocity(theta, np.ones((2, 3)), {"pose": np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])})
+    np.testing.assert_allclose(v, [[0.8, 0.8, 0.9], [1.0, 1.0, 1.0]], atol=1e-4)   # turns lose half as much
     with pytest.raises(cg.LogError, match="order 5"):
         get("surface_friction:5")
     with pytest.raises(cg.LogError, match="whole number"):

@@ -15,6 +15,8 @@ floor slower toward one side: two slopes), order K >= 2 a K x K grid of nodes; t
 BIC prefers. A grid smears a patch's sharp edges over a cell (the 4 x 4 one over a third of the field, which
 leaves residual structure along x or y once added); the patch has them, in five parameters. Its edges start
 where the poses of a fit without it show the robot covering least of its commanded distance (:meth:`begin`).
+Turning and driving need not lose alike (feet that drag on a rug pivot more easily than they stride): every member
+ends with ``turn_share``, the share of the field's slow-down the turn rate feels (1: all alike).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ MIN_SHARE = 0.03          # a patch's start covers at least this share of the co
 GROUPS = 64               # steps asking for one of at most this many velocities are compared within their velocity
 SPEED_BINS = 8            # else within these quantile bins of commanded speed
 PRIOR_SIGMA = 0.3         # prior std of each node's slow-down (a carpet rarely costs more than half the speed)
+SHARE_SIGMA = 0.5         # prior std of the turn share around 1 (turns slowed as much as driving)
 PAD = 0.05                # share of the visited span added on each side of the field
 MIN_SPAN = 0.5            # m: the field spans at least this much along each axis
 
@@ -60,9 +63,9 @@ def bilinear(xy: np.ndarray, extent, nodes: int = NODES) -> np.ndarray:
 class SurfaceFriction(Effect):
     name = "surface_friction"
     channel = "motion"
-    params = tuple(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES))   # node (i along x, j along y)
-    start = (0.0,) * NODES ** 2
-    scale = (0.02,) * NODES ** 2
+    params = (*(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES)), "turn_share")   # node (i along x, j along y)
+    start = (0.0,) * NODES ** 2 + (1.0,)
+    scale = (0.02,) * NODES ** 2 + (0.1,)
     orders = (PATCH, 1, 2, 3, NODES)    # 0: a patch; 1: a plane; K: nodes per axis
     order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
@@ -70,7 +73,8 @@ class SurfaceFriction(Effect):
                         "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
                "every command covers a smaller fraction of its usual distance there; the slow-down is a smooth field "
-               "over the visited area (a rectangular patch, a plane, or a grid of 2 x 2 to 4 x 4 nodes).")
+               "over the visited area (a rectangular patch, a plane, or a grid of 2 x 2 to 4 x 4 nodes), the turn "
+               "rate losing its own share of it.")
 
     def __init__(self, log=None, extent=None, order=None):
         super().__init__(log, order)
@@ -80,12 +84,13 @@ class SurfaceFriction(Effect):
     def set_order(self, order: int) -> None:
         super().set_order(order)
         if order == PATCH:
-            self.params = ("slow", "west", "east", "south", "north")
-            self.start, self.scale = (0.0,) * 5, (0.02, 0.1, 0.1, 0.1, 0.1)
+            self.params = ("slow", "west", "east", "south", "north", "turn_share")
+            self.start, self.scale = (0.0,) * 5 + (1.0,), (0.02, 0.1, 0.1, 0.1, 0.1, 0.1)
             return
-        self.params = (("tilt_east", "tilt_north") if order == 1 else
-                       tuple(f"slow_{i}_{j}" for j in range(order) for i in range(order)))
-        self.start, self.scale = (0.0,) * len(self.params), (0.02,) * len(self.params)
+        field = (("tilt_east", "tilt_north") if order == 1 else
+                 tuple(f"slow_{i}_{j}" for j in range(order) for i in range(order)))
+        self.params = (*field, "turn_share")
+        self.start, self.scale = (0.0,) * len(field) + (1.0,), (0.02,) * len(field) + (0.1,)
 
     def begin(self, model, poses: np.ndarray) -> None:
         """The field's extent from the poses (T+1, 3) of a fit without it, and a patch's start: on a grid of ``CELLS``
@@ -100,7 +105,7 @@ class SurfaceFriction(Effect):
             return
         start = patch_start(poses, model.step_velocities(self.log) * self.log.dt[:, None], self.extent)
         if start is not None:
-            self.start = start
+            self.start = (*start, 1.0)
 
     def place(self, poses: np.ndarray) -> None:
         """A grid's ``visits`` from the poses (T+1, 3) of a fit without it (once: the level they define stays put;
@@ -120,17 +125,19 @@ class SurfaceFriction(Effect):
     def prior(self):
         if self.order == PATCH:           # an edge beyond the visited area drifts to its border
             x0, y0, x1, y1 = self.extent if self.extent is not None else (-50.0, -50.0, 50.0, 50.0)
-            return (np.array([0.0, x0, x1, y0, y1]),
-                    np.array([PRIOR_SIGMA, x1 - x0, x1 - x0, y1 - y0, y1 - y0]))
-        return np.zeros(len(self.params)), np.full(len(self.params), PRIOR_SIGMA)
+            return (np.array([0.0, x0, x1, y0, y1, 1.0]),
+                    np.array([PRIOR_SIGMA, x1 - x0, x1 - x0, y1 - y0, y1 - y0, SHARE_SIGMA]))
+        n = len(self.params) - 1
+        return np.append(np.zeros(n), 1.0), np.append(np.full(n, PRIOR_SIGMA), SHARE_SIGMA)
 
     def free_parameters(self) -> int:
         return len(self.params) - (self.order > 1)      # a grid's level belongs to the action model
 
     def slow(self, theta: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Fraction of its speed the robot loses at each (x, y), against the field's average floor (a plane's
-        slopes are the east and north edges against the west and south ones; a patch's against the floor off it)."""
-        theta, xy = np.asarray(theta, float), np.atleast_2d(xy)
+        slopes are the east and north edges against the west and south ones; a patch's against the floor off it);
+        ``theta`` the member's parameters, the turn share last."""
+        theta, xy = np.asarray(theta, float)[:-1], np.atleast_2d(xy)
         if self.order == PATCH:
             return theta[0] * inside(xy, theta[1:], self.extent)
         if self.order == 1:
@@ -140,16 +147,17 @@ class SurfaceFriction(Effect):
             return theta[0] * u + theta[1] * w
         return bilinear(xy, self.extent, self.order) @ self.relative(theta)
 
-    def relative(self, theta: np.ndarray) -> np.ndarray:
+    def relative(self, nodes: np.ndarray) -> np.ndarray:
         """A grid's node values against its level: the average over the visited steps (``visits``), or the nodes'
         mean for a model written before it was recorded."""
-        level = theta.mean() if self.visits is None else float(self.visits @ theta)
-        return theta - level
+        level = nodes.mean() if self.visits is None else float(self.visits @ nodes)
+        return nodes - level
 
     def velocity(self, theta, v, ctx):
         if self.extent is None:              # the first poses the fit hands over fix the field's extent
             self.extent = extent_around(ctx["pose"])
-        return v * (1.0 - self.slow(theta, ctx["pose"][:, :2]))[:, None]
+        slow = self.slow(theta, ctx["pose"][:, :2])[:, None]
+        return v * (1.0 - slow * np.array([1.0, 1.0, float(theta[-1])]))
 
     def describe(self, theta):
         theta = np.asarray(theta, float)
@@ -157,18 +165,20 @@ class SurfaceFriction(Effect):
         if self.order in (PATCH, 1):
             return {**super().describe(theta), **extent}
         visits = {} if self.visits is None else {"visits": [float(v) for v in self.visits]}
-        return {**super().describe(self.relative(theta)), "grid": [self.order, self.order], **extent, **visits}
+        shown = np.append(self.relative(theta[:-1]), theta[-1])
+        return {**super().describe(shown), "grid": [self.order, self.order], **extent, **visits}
 
     def simulate_params(self, value, rng):
         """The nodes east of x = 0 (of a field centred on the origin) slower than those west of it by ``value``
-        (on an odd grid the middle column half as slow; a plane's east edge ``value`` slower than its west)."""
+        (on an odd grid the middle column half as slow; a plane's east edge ``value`` slower than its west), turns
+        slowed alike."""
         if self.order == 1:
-            return np.array([float(value), 0.0])
+            return np.array([float(value), 0.0, 1.0])
         if self.order == PATCH:              # the east half, its other edges beyond the field
             x0, y0, x1, y1 = self.extent
-            return np.array([float(value), (x0 + x1) / 2, 2 * x1 - x0, 2 * y0 - y1, 2 * y1 - y0])
-        i = np.arange(len(self.params)) % self.order
-        return float(value) * np.clip(i - (self.order - 1) / 2 + 0.5, 0.0, 1.0)
+            return np.array([float(value), (x0 + x1) / 2, 2 * x1 - x0, 2 * y0 - y1, 2 * y1 - y0, 1.0])
+        i = np.arange(len(self.params) - 1) % self.order
+        return np.append(float(value) * np.clip(i - (self.order - 1) / 2 + 0.5, 0.0, 1.0), 1.0)
 
 
 def inside(xy: np.ndarray, edges, extent) -> np.ndarray:
