@@ -204,6 +204,12 @@ def test_a_family_keeps_its_best_member_and_says_how_to_add_it():
     (words,) = D.family_words(kept, "surface_friction")
     assert "BIC chose order 1" in words and "--effect surface_friction:1" in words
     assert D.family_words(kept, "camera_latency") == [] and D.family_words(kept, "none") == []
+    confirmed = [([*fam, one])[i] for i in D.best_of_family([*fam, one], {"surface_friction": 2})]
+    assert confirmed[0].order == 2 and confirmed[0].delta_bic == -3.9 and confirmed[0].orders == best.orders
+    confirmed[0].confirmed = {1: 41_378.5, 2: 41_415.3}
+    assert confirmed[0].to_json()["confirmed"] == {"1": 41_378.5, "2": 41_415.3}
+    (words,) = D.family_words(confirmed, "surface_friction")
+    assert "order 2: 41,415.3" in words and "keeps order 2" in words and "--effect surface_friction:2" in words
 
 
 def test_effects_command_lists_the_catalog():

@@ -101,6 +101,12 @@ class DiagnoseOptions:
     #                                    (-24,878 against -24,663), the lag's delay held at its two-round profile
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
+    confirm_members: bool = True       # continuous logs: a leading family's members within ``lookalike_gain`` of its
+    #                                    best are fitted as ``calibrate --effect`` fits them (the fine graph) and the
+    #                                    member with the best BIC there is kept: the coarse graph's knots, a second
+    #                                    apart, blur a patch's sharp edges (omni world seed 1: the 4 x 4 grid ahead of
+    #                                    the patch by 3,288 nats on it; the patch ahead by 3,229 in the calibration,
+    #                                    which then leaves none where the grid left battery_fade)
     proposal_challenge: float = 2.0    # a catalog verdict on the motion channel yields to the sparse regression's
     #                                    proposal, fitted as a candidate, when the proposal gains at least this many
     #                                    times its log-likelihood and lowers BIC by more than the look-alike margin
@@ -274,6 +280,7 @@ class Candidate:
     heldout_skipped: str = "no in-sample gain (delta BIC >= 0), held-out folds not run"
     order: int | None = None         # a family's member (Effect.orders): its complexity
     orders: dict = field(default_factory=dict)   # every member's delta BIC, by order (the kept one the lowest)
+    confirmed: dict = field(default_factory=dict)   # members fitted as calibrate fits them: log-likelihood by order
     screened: bool = False           # not fitted: delta BIC and log-likelihood are the score test's prediction
     prediction: dict | None = field(default=None, repr=False)   # the fit's predicted sightings (look-alike test)
 
@@ -283,7 +290,8 @@ class Candidate:
                 "delta_log_likelihood": self.delta_log_likelihood, "parameters": self.parameters,
                 **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped}),
                 **({"order": self.order, "orders": {str(k): v for k, v in self.orders.items()}}
-                   if self.orders else {}), **({"screened": True} if self.screened else {})}
+                   if self.orders else {}), **({"screened": True} if self.screened else {}),
+                **({"confirmed": {str(k): v for k, v in self.confirmed.items()}} if self.confirmed else {})}
 
     @property
     def spec(self) -> str:
@@ -299,12 +307,17 @@ def family_members(cls) -> list:
     return [cls.of_order(k) for k in cls.orders] if cls.orders else [cls]
 
 
-def best_of_family(cands: list[Candidate]) -> list[int]:
-    """Indices (in order) of the candidates kept: per effect the member with the lowest delta BIC, which records
-    every member's delta BIC in ``orders``."""
+def best_of_family(cands: list[Candidate], chosen: dict | None = None) -> list[int]:
+    """Indices (in order) of the candidates kept: per effect the member with the lowest delta BIC, or the order
+    ``chosen`` names for it (a member confirmed on the calibration's graph), which records every member's delta BIC
+    in ``orders``."""
     best: dict[str, int] = {}
+    chosen = chosen or {}
     for i, c in enumerate(cands):
-        if c.effect not in best or c.delta_bic < cands[best[c.effect]].delta_bic:
+        if c.effect in chosen:
+            if c.order == chosen[c.effect]:
+                best[c.effect] = i
+        elif c.effect not in best or c.delta_bic < cands[best[c.effect]].delta_bic:
             best[c.effect] = i
     for i in best.values():
         c = cands[i]
@@ -329,6 +342,11 @@ def family_words(cands: list[Candidate], verdict_effect: str) -> list[str]:
     if c is None:
         return []
     tried = ", ".join(f"order {k}: {v:+.1f}" for k, v in sorted(c.orders.items()))
+    if c.confirmed:
+        fitted = ", ".join(f"order {k}: {v:,.1f}" for k, v in sorted(c.confirmed.items()))
+        return [f"{c.effect} is a family of forms (delta BIC {tried}); fitted as calibrate fits them, the leading "
+                f"members reach log-likelihoods {fitted}, and BIC there keeps order {c.order}. "
+                f"Add it with `calibrate --effect {c.spec}`."]
     return [f"{c.effect} is a family of forms; BIC chose order {c.order} (delta BIC {tried}). "
             f"Add it with `calibrate --effect {c.spec}`."]
 

@@ -58,6 +58,12 @@ def settled_profiled(log: Log, fit: Fit, name: str, own, search, knot_dt: float,
     return (prof, lagged) + settled(log, lay, lagged, use, start, own, rounds, search.iterations)
 
 
+def calibrated_member(log: Log, base: Fit, e, options: CT.CommandGraphOptions) -> float:
+    """The log-likelihood ``calibrate --effect`` reaches from ``base`` with the family member ``e`` (a fresh
+    instance: its start is placed from ``base``'s poses): a worker's task."""
+    return CT.fit_hooked(log, base, [type(e)(log)], marginals=False, options=options).log_likelihood
+
+
 def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
     """Effects fitted through their hooks that may be tried on ``log`` (catalog and ``extra_effects``, not in the
     model yet), and the others with the reason each is skipped."""
@@ -178,7 +184,7 @@ class CommandBench(Bench):
         self.model = model = problem.with_state(model, st)
         full = CT.fill_in(log, model, lay.knots, st.poses)
         self.fit = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
-        self.problem, self.state, self.poses = problem, st, full
+        self.problem, self.state, self.poses, self.use = problem, st, full, use
         self.set_aside = problem.set_aside(model)
         self.coarse = CT.layout(log, graph.coarse_knot_dt)
         self.cuse = CT.gate(log, full[log.obs_step], model, effects=own)
@@ -262,7 +268,7 @@ class CommandBench(Bench):
                                        order=e.order if e.orders else None, heldout_skipped=NO_FOLDS,
                                        prediction=prediction))
                 settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
-        cands = [cands[i] for i in best_of_family(cands)]      # a family's members compete; BIC keeps one
+        cands = [cands[i] for i in best_of_family(cands, self.confirm(cands, fitted))]   # BIC keeps one member
         cands.sort(key=lambda c: c.delta_bic)
         self.decide(cands, settles)
         names = [*(m for m in CT.EFFECTS if m not in skipped and self.wanted(m)), *(e.name for e in hooked)]
@@ -270,6 +276,39 @@ class CommandBench(Bench):
         self.last = tuple(e.name for e in hooked if e.mixture)
         return (cands, skipped, {m: kinds[m].explains for m in names},
                 {m: kinds[m].distinguished_by for m in names})
+
+    def confirm(self, cands: list[Candidate], fitted: list) -> dict:
+        """{family: order} for each leading family (``options.confirm_members``) whose members within
+        ``options.lookalike_gain`` of its best gain on the coarse graph are more than one: each fitted as
+        ``calibrate --effect`` fits it, on the fine graph from the refitted base, the one with the best BIC there
+        kept (its log-likelihood by order in ``Candidate.confirmed``)."""
+        o = self.options
+        if not o.confirm_members:
+            return {}
+        best = [cands[i] for i in best_of_family(cands)]
+        effects = {(e.name, e.order): e for e in fitted}
+        todo = {}
+        for lead in leading(best, o):
+            members = [c for c in cands if c.effect == lead.effect and (c.effect, c.order) in effects
+                       and c.delta_bic <= o.bic_support and c.delta_bic <= o.lookalike_gain * lead.delta_bic]
+            if len(members) > 1:
+                todo[lead.effect] = members
+        if not todo:
+            return {}
+        work = [(c, effects[(c.effect, c.order)]) for members in todo.values() for c in members]
+        if self.progress is not None:
+            self.progress.stage("confirming members", len(work), unit="fits")
+        lls = parallel([(calibrated_member, (self.log, self.fit, e, self.graph)) for _, e in work], self.workers,
+                       self.progress, self.client)
+        n = CT.residual_rows(self.log, self.problem.lay, self.use)
+        chosen = {}
+        for name, members in todo.items():
+            scored = {c.order: (ll, e.free_parameters()) for (c, e), ll in zip(work, lls) if c.effect == name}
+            keep = min(scored, key=lambda k: -2 * scored[k][0] + scored[k][1] * np.log(n))
+            chosen[name] = keep
+            for c in members:
+                c.confirmed = {k: float(v[0]) for k, v in sorted(scored.items())}
+        return chosen
 
     def decide(self, cands: list[Candidate], settles: dict) -> None:
         """With ``options.decide_rounds`` above the settle rounds, the leaders and the base settled again for up
