@@ -193,6 +193,20 @@ def test_friction_grid_level_is_the_visited_floors():
                                               bilinear(poses[:, :2], e.extent) @ (values[:-1] - values[:-1].mean()))
 
 
+def test_a_friction_entry_written_before_the_turn_share_slows_turns_alike():
+    """A model.json friction entry without ``turn_share`` (written before the family had it) is read with the turn
+    rate slowed as much as driving: the share 1 the family starts from."""
+    log, _ = simulate(SimConfig(minutes=0.2, seed=1))
+    entry = {"slow_0_0": 0.1, "slow_1_0": 0.0, "slow_0_1": 0.0, "slow_1_1": 0.0, "order": 2, "grid": [2, 2],
+             "extent": [0.0, 0.0, 1.0, 1.0]}
+    m = Model.from_json({**paper_start(log).to_json(), "effects": {"surface_friction": entry}})
+    (e,) = AU.instantiate(["surface_friction:2"], log)
+    theta = AU.theta_from_model([e], m)
+    assert e.params[-1] == "turn_share" and theta[-1] == 1.0 and theta[0] == pytest.approx(0.1)
+    v = e.velocity(theta, np.ones((1, 3)), {"pose": np.array([[0.0, 0.0, 0.0]])})
+    assert v[0, 0] == pytest.approx(v[0, 2]) and v[0, 0] < 1.0
+
+
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):
     """``surface_friction:K`` is the K x K member; it travels as its name, records its order in model.json and
     comes back as the same member; an order the family lacks is one LogError."""
