@@ -17,6 +17,7 @@ from casm_graph.analysis.correlation import strongest
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.fit import residuals
 from casm_graph.fit.result import Fit
+from casm_graph.graph import augmented
 from casm_graph.io.log import Log
 from casm_graph.models.command_model import AXIS_WORDS, CommandModel, map_name
 from casm_graph.models.effects.regional_motion_noise import determined, from_entry, variances
@@ -99,8 +100,7 @@ def friction_figure(fit: Fit):
     x0, y0, x1, y1 = e["extent"]
     gx, gy = np.meshgrid(np.linspace(x0, x1, 120), np.linspace(y0, y1, 90))
     field = SurfaceFriction()
-    field.restore(e)
-    theta = np.array([e.get(p, s) for p, s in zip(field.params, field.start)])
+    theta = augmented.theta_from_model([field], fit.model)        # restores the entry's order and extent too
     slow = field.slow(theta, np.column_stack([gx.ravel(), gy.ravel()]))
     slow = slow.reshape(gx.shape)
     lim = max(float(np.abs(slow).max()) * 100, 1.0)

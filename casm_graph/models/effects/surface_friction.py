@@ -59,13 +59,23 @@ def bilinear(xy: np.ndarray, extent, nodes: int = NODES) -> np.ndarray:
     return out
 
 
+def shape(order: int) -> tuple[tuple, tuple, tuple]:
+    """(params, start, scale) of the member of ``order``: its field's parameters (a patch's slow-down and edges, a
+    plane's two slopes, or a grid's nodes, i along x and j along y), then the turn share."""
+    if order == PATCH:
+        field, start, scale = ("slow", "west", "east", "south", "north"), (0.0,) * 5, (0.02, 0.1, 0.1, 0.1, 0.1)
+    else:
+        field = (("tilt_east", "tilt_north") if order == 1 else
+                 tuple(f"slow_{i}_{j}" for j in range(order) for i in range(order)))
+        start, scale = (0.0,) * len(field), (0.02,) * len(field)
+    return (*field, "turn_share"), (*start, 1.0), (*scale, 0.1)
+
+
 @register
 class SurfaceFriction(Effect):
     name = "surface_friction"
     channel = "motion"
-    params = (*(f"slow_{i}_{j}" for j in range(NODES) for i in range(NODES)), "turn_share")   # node (i along x, j along y)
-    start = (0.0,) * NODES ** 2 + (1.0,)
-    scale = (0.02,) * NODES ** 2 + (0.1,)
+    params, start, scale = shape(NODES)
     orders = (PATCH, 1, 2, 3, NODES)    # 0: a patch; 1: a plane; K: nodes per axis
     order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
@@ -83,14 +93,7 @@ class SurfaceFriction(Effect):
 
     def set_order(self, order: int) -> None:
         super().set_order(order)
-        if order == PATCH:
-            self.params = ("slow", "west", "east", "south", "north", "turn_share")
-            self.start, self.scale = (0.0,) * 5 + (1.0,), (0.02, 0.1, 0.1, 0.1, 0.1, 0.1)
-            return
-        field = (("tilt_east", "tilt_north") if order == 1 else
-                 tuple(f"slow_{i}_{j}" for j in range(order) for i in range(order)))
-        self.params = (*field, "turn_share")
-        self.start, self.scale = (0.0,) * len(field) + (1.0,), (0.02,) * len(field) + (0.1,)
+        self.params, self.start, self.scale = shape(order)
 
     def begin(self, model, poses: np.ndarray) -> None:
         """The field's extent from the poses (T+1, 3) of a fit without it, and a patch's start: on a grid of ``CELLS``
