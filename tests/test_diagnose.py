@@ -212,6 +212,31 @@ def test_a_family_keeps_its_best_member_and_says_how_to_add_it():
     assert "order 2: 41,415.3" in words and "keeps order 2" in words and "--effect surface_friction:2" in words
 
 
+def test_a_fit_that_cannot_happen_is_set_aside_and_said_so():
+    """A candidate whose fit is not physical (``implausible``) is no verdict and no look-alike, a family keeps its
+    member that lowers BIC with a physical fit over a lower one without, and the words say what was set aside."""
+    why = "the floor would let the robot drive 4.2 times as fast over one part of the field as over another"
+    strong = {"channel": "reading", "name": "heading", "strength": 0.05, "p": 1e-12, "kind": "mean"}
+    bent = D.Candidate("surface_friction", "motion", -1933.5, 8006.5, "", 966.8, order=0, implausible=why)
+    v, words = D.verdict([bent, cand("battery_fade", -30, 12)], [strong])
+    assert v == "battery_fade" and any("Set aside as not physical: surface_friction" in w and why in w for w in words)
+    v, words = D.verdict([bent], [strong])
+    assert v == "unexplained:heading" and "Set aside" in words[-1]
+    assert bent.to_json()["implausible"] == why and "implausible" not in cand("battery_fade", -30, 12).to_json()
+    assert D.leading([bent, cand("battery_fade", -30, 12)])[0].effect == "battery_fade"
+    grid = D.Candidate("surface_friction", "motion", -1567.4, float("nan"), "", 790.0, order=4)
+    worse = D.Candidate("surface_friction", "motion", 12.0, float("nan"), "", -2.0, order=1)
+    assert D.best_of_family([bent, grid, worse]) == [1]
+    assert D.best_of_family([bent, worse]) == [0]                     # none lowers BIC physically: the best kept
+    fade = cand("battery_fade", -1900, 20)
+    seen = {"bearing": np.zeros(2), "reading_sigma": 1.0, "bearing_sigma": 1.0}
+    fade.prediction = bent.prediction = {"reading": np.ones(3), **seen}          # they change the sightings alike
+    assert D.lookalikes([fade, bent], "battery_fade", base={"reading": np.zeros(3), **seen}) == []
+    bent.implausible = ""
+    assert D.lookalikes([fade, bent], "battery_fade", base={"reading": np.zeros(3), **seen})[0]["effects"] == [
+        "battery_fade", "surface_friction"]
+
+
 def test_effects_command_lists_the_catalog():
     r = cli("effects")
     assert r.returncode == 0

@@ -9,7 +9,7 @@ from casm_graph.fit import effect_fit
 from casm_graph.fit.solve import _damping
 from casm_graph.graph import augmented as AU
 from casm_graph.graph.problem import THETA, Problem
-from casm_graph.models.effects import REGISTRY, catalog, get, of_model, spec
+from casm_graph.models.effects import REGISTRY, catalog, get, of_model, spec, unphysical
 from casm_graph.models.effects.base import held
 from casm_graph.models.effects.surface_friction import NODES, bilinear, extent_around, patch_start
 from casm_graph.models.model import Model, paper_start
@@ -205,6 +205,28 @@ def test_a_friction_entry_written_before_the_turn_share_slows_turns_alike():
     assert e.params[-1] == "turn_share" and theta[-1] == 1.0 and theta[0] == pytest.approx(0.1)
     v = e.velocity(theta, np.ones((1, 3)), {"pose": np.array([[0.0, 0.0, 0.0]])})
     assert v[0, 0] == pytest.approx(v[0, 2]) and v[0, 0] < 1.0
+
+
+def test_a_floor_that_changes_the_speed_beyond_physics_is_implausible():
+    """A friction fit that has one part of the floor let the robot run more than three times as fast as another
+    (driving or turning), or stop it, cannot happen; a carpet that costs 40 % of the speed can, of every member. The
+    glare notebook's patch (slow -3.16: 4.2 times as fast) is the case it catches."""
+    patch = get("surface_friction:0")(extent=(0.0, 0.0, 4.0, 4.0))
+    assert patch.implausible(np.array([0.4, 1.0, 2.0, 0.0, 4.0, 0.5])) is None
+    assert patch.implausible(np.array([-1.5, 1.0, 2.0, 0.0, 4.0, 1.0])) is None          # the fast part is the patch
+    assert "4.2 times as fast" in patch.implausible(np.array([-3.16, 1.0, 2.0, 0.0, 4.0, 0.02]))
+    assert "drive 3.3 times" in patch.implausible(np.array([0.7, 1.0, 2.0, 0.0, 4.0, 1.0]))
+    assert "stop the robot's turn" in patch.implausible(np.array([0.3, 1.0, 2.0, 0.0, 4.0, 4.0]))
+    plane = get("surface_friction:1")(extent=(0.0, 0.0, 4.0, 4.0))
+    assert plane.implausible(np.array([0.3, -0.3, 1.0])) is None                       # 1.3 against 0.7
+    assert plane.implausible(np.array([0.7, -0.6, 1.0])) is not None                   # 1.65 against 0.35
+    grid = get("surface_friction:2")(extent=(0.0, 0.0, 4.0, 4.0))
+    grid.visits = np.array([0.5, 0.5, 0.0, 0.0])                    # the north nodes never reached
+    assert grid.implausible(np.array([0.2, -0.2, 5.0, -5.0, 1.0])) is None
+    assert grid.implausible(np.array([0.9, -0.9, 0.0, 0.0, 1.0])) is not None          # 0.1 against 1.9
+    entry = {**grid.describe(np.array([0.9, -0.9, 0.0, 0.0, 1.0]))}
+    assert unphysical(get("surface_friction:2"), entry) == grid.implausible(np.array([0.9, -0.9, 0.0, 0.0, 1.0]))
+    assert unphysical(get("battery_fade"), {"rate": 50.0}) is None                    # effects without the hook
 
 
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):

@@ -282,6 +282,7 @@ class Candidate:
     orders: dict = field(default_factory=dict)   # every member's delta BIC, by order (the kept one the lowest)
     confirmed: dict = field(default_factory=dict)   # members fitted as calibrate fits them: log-likelihood by order
     screened: bool = False           # not fitted: delta BIC and log-likelihood are the score test's prediction
+    implausible: str = ""            # why its fitted parameters cannot happen (Effect.implausible): kept out of verdicts
     prediction: dict | None = field(default=None, repr=False)   # the fit's predicted sightings (look-alike test)
 
     def to_json(self) -> dict:
@@ -291,7 +292,8 @@ class Candidate:
                 **({} if np.isfinite(self.heldout_nll_drop) else {"heldout_skipped": self.heldout_skipped}),
                 **({"order": self.order, "orders": {str(k): v for k, v in self.orders.items()}}
                    if self.orders else {}), **({"screened": True} if self.screened else {}),
-                **({"confirmed": {str(k): v for k, v in self.confirmed.items()}} if self.confirmed else {})}
+                **({"confirmed": {str(k): v for k, v in self.confirmed.items()}} if self.confirmed else {}),
+                **({"implausible": self.implausible} if self.implausible else {})}
 
     @property
     def spec(self) -> str:
@@ -308,16 +310,20 @@ def family_members(cls) -> list:
 
 
 def best_of_family(cands: list[Candidate], chosen: dict | None = None) -> list[int]:
-    """Indices (in order) of the candidates kept: per effect the member with the lowest delta BIC, or the order
-    ``chosen`` names for it (a member confirmed on the calibration's graph), which records every member's delta BIC
-    in ``orders``."""
+    """Indices (in order) of the candidates kept: per effect the member with the lowest delta BIC among those that
+    lower it with a fit that can happen (any, when none does), or the order ``chosen`` names for it (a member
+    confirmed on the calibration's graph), which records every member's delta BIC in ``orders``."""
     best: dict[str, int] = {}
     chosen = chosen or {}
+
+    def rank(c: Candidate) -> tuple:
+        return bool(c.implausible) or not c.delta_bic < 0.0, c.delta_bic
+
     for i, c in enumerate(cands):
         if c.effect in chosen:
             if c.order == chosen[c.effect]:
                 best[c.effect] = i
-        elif c.effect not in best or c.delta_bic < cands[best[c.effect]].delta_bic:
+        elif c.effect not in best or rank(c) < rank(cands[best[c.effect]]):
             best[c.effect] = i
     for i in best.values():
         c = cands[i]
@@ -330,6 +336,7 @@ def leading(cands: list[Candidate], options: DiagnoseOptions = DEFAULTS) -> list
     """The candidates a verdict or a look-alike group could name: BIC supports each strongly (delta BIC at most
     ``options.bic_support``) and each gains at least ``options.lookalike_gain`` of the best's delta BIC. Those are
     what more rounds of settling are spent on."""
+    cands = [c for c in cands if not c.implausible]
     if not cands:
         return []
     best = min(c.delta_bic for c in cands)
@@ -409,7 +416,8 @@ def lookalikes(cands: list[Candidate], verdict_effect: str, separated_by: dict |
         return max(reproduced_share(base, best.prediction, c.prediction),
                    reproduced_share(base, c.prediction, best.prediction))
 
-    shares = {id(c): share(c) for c in cands if c is not best and c.delta_bic <= options.bic_support}
+    shares = {id(c): share(c) for c in cands
+              if c is not best and c.delta_bic <= options.bic_support and not c.implausible}
     group = [best] + [c for c in cands if id(c) in shares and (
         abs(c.delta_bic - best.delta_bic) < within
         or (shares[id(c)] >= options.lookalike_prediction and c.delta_bic <= options.lookalike_gain * best.delta_bic))]
@@ -479,7 +487,7 @@ def built_for(strong: list[dict], explains: dict, report: dict | None = None, st
 def is_supported(c: Candidate, matches: Callable, options: DiagnoseOptions = DEFAULTS) -> bool:
     """BIC supports ``c`` strongly and a second line agrees: the held-out score, or the structure it is built for
     unless the held-out score speaks against it (falls by more than ``options.heldout_veto`` nats)."""
-    return c.delta_bic <= options.bic_support and (
+    return not c.implausible and c.delta_bic <= options.bic_support and (
         c.heldout_nll_drop > options.heldout_support
         or (matches(c) and not c.heldout_nll_drop < -options.heldout_veto))
 
@@ -497,7 +505,8 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     held-out score decides. Effects named in ``last`` are the verdict only when no other candidate is supported
     (a continuous log's false-detection mixture, scored on the sightings the gate sets aside, whose delta BIC is
     not on the others' scale: a strong lens sends sightings beyond the gate too). Given the channel ``report``, a
-    candidate without held-out folds may also be built for a structure of its own (:func:`own_structure`).
+    candidate without held-out folds may also be built for a structure of its own (:func:`own_structure`). A
+    candidate whose fit cannot happen (``implausible``) is set aside, and the words say so.
     """
     words = []
     explains = explains or {}
@@ -505,6 +514,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     strong = strong_structures(structure, o)
     matches = built_for(strong, explains, report, structure, o)
     supported = [c for c in cands if is_supported(c, matches, o)]
+    aside = [f"Set aside as not physical: {c.effect} lowers BIC by {-c.delta_bic:.1f}, but its fit says {c.implausible}; "
+             "it bends that effect's form around structure of another kind." for c in cands
+             if c.implausible and c.delta_bic <= o.bic_support]
     first = [c for c in supported if c.effect not in last] or supported
     if supported:
         lead = min(c.delta_bic for c in first)
@@ -545,7 +557,7 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
         if unscored:
             words.append("Also lowering BIC strongly, not scored on held-out folds (the verdict does not depend on "
                          "them): " + ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in unscored) + ".")
-        return best.effect, words
+        return best.effect, words + aside
     if structure:
         s = structure[0]
         words.append(f"No catalog effect explains the data better, but the {s['channel']} residuals' "
@@ -555,10 +567,10 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
             words.append("The sensor curve itself may be what misses: a reading that is an apparent size (pixels) "
                          "falls as 1/distance, which a polynomial in the distance follows badly near the landmarks; "
                          "calibrate again with --sensor-basis inverse_distance (or a higher --max-sensor-degree).")
-        return f"unexplained:{s['name']}", words
+        return f"unexplained:{s['name']}", words + aside
     words.append("The model explains the data: no candidate effect is supported (every delta BIC above "
                  f"{o.bic_support:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")
-    return "none", words
+    return "none", words + aside
 
 
 @dataclass

@@ -19,6 +19,7 @@ from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
 from casm_graph.models.effects import get as get_effect
+from casm_graph.models.effects import unphysical
 from casm_graph.report import pages as report
 from factors.reading import BASES
 
@@ -69,6 +70,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
     start = part.start_model(log, options.sensor_degree, start_basis(options))
     fit = part.calibrate(log, start, options, classes, progress)
     warn_if_worse(fit, classes)
+    warn_if_unphysical(log, fit, classes)
     return Calibration(log=log, model=fit.model, trajectory=trajectory_array(log.pose_times, fit.poses, fit.pose_std),
                        options=options, fit=fit,
                        write_report=lambda path, cal: report.calibration(path, log, fit, cal,
@@ -90,6 +92,17 @@ def warn_if_worse(fit: Fit, classes: list) -> None:
                       f"the fit stopped in a local optimum from its start, and the model without it explains the "
                       f"log better (`diagnose` says which form fits; another --seed starts the base elsewhere)",
                       RuntimeWarning, stacklevel=3)
+
+
+def warn_if_unphysical(log: Log, fit: Fit, classes: list) -> None:
+    """A RuntimeWarning for each added effect whose fitted parameters cannot happen (:meth:`Effect.implausible`):
+    the effect's form was bent around structure of another kind."""
+    for cls in classes:
+        entry = fit.model.effects.get(cls.name)
+        why = None if not entry else unphysical(cls, entry, log)
+        if why:
+            warnings.warn(f"{cls.name}'s fit is not physical: {why}; the log's structure is of another kind "
+                          f"(`diagnose` without it says what else explains it)", RuntimeWarning, stacklevel=3)
 
 
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,

@@ -26,7 +26,7 @@ from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
 from casm_graph.graph.problem import Problem
 from casm_graph.io.log import Log, LogError
-from casm_graph.models.effects import REGISTRY
+from casm_graph.models.effects import REGISTRY, unphysical
 from casm_graph.models.effects.false_detections import FalseDetections, mixture_terms, reading_span, share
 from casm_graph.models.model import Model
 
@@ -58,10 +58,12 @@ def settled_profiled(log: Log, fit: Fit, name: str, own, search, knot_dt: float,
     return (prof, lagged) + settled(log, lay, lagged, use, start, own, rounds, search.iterations)
 
 
-def calibrated_member(log: Log, base: Fit, e, options: CT.CommandGraphOptions) -> float:
+def calibrated_member(log: Log, base: Fit, e, options: CT.CommandGraphOptions) -> tuple[float, str]:
     """The log-likelihood ``calibrate --effect`` reaches from ``base`` with the family member ``e`` (a fresh
-    instance: its start is placed from ``base``'s poses): a worker's task."""
-    return CT.fit_hooked(log, base, [type(e)(log)], marginals=False, options=options).log_likelihood
+    instance: its start is placed from ``base``'s poses), and why its fit cannot happen ("" when it can): a worker's
+    task."""
+    fit = CT.fit_hooked(log, base, [type(e)(log)], marginals=False, options=options)
+    return fit.log_likelihood, unphysical(type(e), fit.model.effects.get(e.name, {}), log) or ""
 
 
 def hooked_candidates(log: Log, model: Model, extra_effects=()) -> tuple[list, dict]:
@@ -266,7 +268,8 @@ class CommandBench(Bench):
                                        heldout_nll_drop=float("nan"), explanation=e.physics,
                                        delta_log_likelihood=gain, parameters=dict(m.effects.get(e.name, {})),
                                        order=e.order if e.orders else None, heldout_skipped=NO_FOLDS,
-                                       prediction=prediction))
+                                       prediction=prediction,
+                                       implausible=unphysical(type(e), m.effects.get(e.name, {}), log) or ""))
                 settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
         cands = [cands[i] for i in best_of_family(cands, self.confirm(cands, fitted))]   # BIC keeps one member
         cands.sort(key=lambda c: c.delta_bic)
@@ -303,11 +306,14 @@ class CommandBench(Bench):
         n = CT.residual_rows(self.log, self.problem.lay, self.use)
         chosen = {}
         for name, members in todo.items():
-            scored = {c.order: (ll, e.free_parameters()) for (c, e), ll in zip(work, lls) if c.effect == name}
-            keep = min(scored, key=lambda k: -2 * scored[k][0] + scored[k][1] * np.log(n))
+            scored = {c.order: (ll, e.free_parameters(), why)
+                      for (c, e), (ll, why) in zip(work, lls) if c.effect == name}
+            keep = min(scored, key=lambda k: (bool(scored[k][2]), -2 * scored[k][0] + scored[k][1] * np.log(n)))
             chosen[name] = keep
             for c in members:
                 c.confirmed = {k: float(v[0]) for k, v in sorted(scored.items())}
+                if c.order == keep and scored[keep][2]:
+                    c.implausible = scored[keep][2]      # as calibrate would fit it
         return chosen
 
     def decide(self, cands: list[Candidate], settles: dict) -> None:

@@ -21,7 +21,7 @@ from casm_graph.analysis.score_test import predicted_floor, predicted_gain
 from casm_graph.fit import effect_fit
 from casm_graph.graph.augmented import begin, instantiate
 from casm_graph.io.log import Log
-from casm_graph.models.effects import REGISTRY, get, of_model, spec
+from casm_graph.models.effects import REGISTRY, get, of_model, spec, unphysical
 from casm_graph.models.effects.base import held
 from casm_graph.models.model import Model
 
@@ -111,9 +111,10 @@ def fit_member(log: Log, refit: "effect_fit.EffectFit", screen: "effect_fit.Effe
     model, poses = start if start is not None else (refit.model, refit.poses)
     f = effect_fit.fit(log, model, poses, refit.effects + [eff], rounds=options.candidate_rounds,
                        iterations=options.candidate_iterations)
+    entry = f.model.effects.get(eff.name, {})
     c = Candidate(eff.name, eff.channel, float("nan"), float("nan"), eff.physics, float("nan"),
-                  f.model.effects.get(eff.name, {}), time.perf_counter() - t0, order=order,
-                  prediction=predicted_sightings(f.problem, f.state))
+                  entry, time.perf_counter() - t0, order=order, prediction=predicted_sightings(f.problem, f.state),
+                  implausible=unphysical(type(eff), entry, log) or "")
     return c, f.model, f.poses, (f.log_likelihood, penalty)
 
 

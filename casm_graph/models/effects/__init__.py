@@ -15,9 +15,9 @@ from casm_graph.models.effects import (
     regional_motion_noise,  # noqa: F401
     surface_friction,  # noqa: F401
 )
-from casm_graph.models.effects.base import REGISTRY, Effect, get, register, spec
+from casm_graph.models.effects.base import REGISTRY, Effect, get, register, spec, unphysical
 
-__all__ = ["REGISTRY", "Effect", "get", "register", "spec", "catalog", "of_model", "unresolved"]
+__all__ = ["REGISTRY", "Effect", "get", "register", "spec", "unphysical", "catalog", "of_model", "unresolved"]
 
 
 def of_model(effects: dict, own=()) -> list[type[Effect]]:

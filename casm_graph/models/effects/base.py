@@ -90,6 +90,11 @@ class Effect:
         """(mean, sigma) of a Gaussian prior on the parameters, or None for none."""
         return None
 
+    def implausible(self, theta: np.ndarray) -> str | None:
+        """None when ``theta`` describes physics that can happen, else why not (a floor that makes the robot several
+        times faster): such a fit fits something else, and a diagnosis keeps it out of its verdict."""
+        return None
+
     def simulate_params(self, value: float, rng: np.random.Generator) -> np.ndarray:
         """True parameters for ``simulate --effect NAME=VALUE``."""
         return np.array([value], float)
@@ -179,6 +184,14 @@ def _rebuilt(kind, state: dict) -> Effect:
     out = cls.__new__(cls)
     out.__dict__.update(state)
     return out
+
+
+def unphysical(cls: type[Effect], entry: dict, log: Log | None = None) -> str | None:
+    """Why the model.json ``entry`` of effect class ``cls`` (``describe``'s output) cannot happen, or None
+    (:meth:`Effect.implausible`)."""
+    eff = cls(log)
+    eff.restore(entry)
+    return eff.implausible(np.array([float(entry.get(p, s)) for p, s in zip(eff.params, eff.start)]))
 
 
 def spec(cls: type[Effect]):

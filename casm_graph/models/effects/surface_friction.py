@@ -34,6 +34,7 @@ GROUPS = 64               # steps asking for one of at most this many velocities
 SPEED_BINS = 8            # else within these quantile bins of commanded speed
 PRIOR_SIGMA = 0.3         # prior std of each node's slow-down (a carpet rarely costs more than half the speed)
 SHARE_SIGMA = 0.5         # prior std of the turn share around 1 (turns slowed as much as driving)
+FASTEST = 3.0             # one part of a floor lets the robot run at most this many times as fast as another
 PAD = 0.05                # share of the visited span added on each side of the field
 MIN_SPAN = 0.5            # m: the field spans at least this much along each axis
 
@@ -149,6 +150,29 @@ class SurfaceFriction(Effect):
             w = np.clip((xy[:, 1] - y0) / (y1 - y0), 0.0, 1.0) - 0.5
             return theta[0] * u + theta[1] * w
         return bilinear(xy, self.extent, self.order) @ self.relative(theta)
+
+    def implausible(self, theta):
+        """A floor lets the robot run at most ``FASTEST`` times as fast over one part as over another, driving or
+        turning: a fit that says more bends the floor around something else (an independent world's window glare
+        fitted as a 0.6-m strip where the robot ran 4.5 times as fast as elsewhere)."""
+        theta = np.asarray(theta, float)
+        field, share = theta[:-1], float(theta[-1])
+        if self.order == PATCH:
+            slows = field[:1]
+        elif self.order == 1:
+            half = 0.5 * (abs(field[0]) + abs(field[1]))
+            slows = np.array([-half, half])
+        else:                                 # the nodes the robot reached (a bilinear field's extremes)
+            seen = np.ones(len(field), bool) if self.visits is None else self.visits > 0.1 / len(field)
+            slows = self.relative(field)[seen]
+        for what, k in (("drive", 1.0), ("turn", share)):
+            speed = np.append(1.0 - k * slows, 1.0)          # 1: the floor the slow-down is measured against
+            if speed.min() <= 0.0:
+                return f"the floor would stop the robot's {what} over part of the field (or reverse it)"
+            if speed.max() / speed.min() > FASTEST:
+                return (f"the floor would let the robot {what} {speed.max() / speed.min():.1f} times as fast over one "
+                        f"part of the field as over another (a floor changes it at most {FASTEST:g} times)")
+        return None
 
     def relative(self, nodes: np.ndarray) -> np.ndarray:
         """A grid's node values against its level: the average over the visited steps (``visits``), or the nodes'
