@@ -204,6 +204,8 @@ def test_a_family_keeps_its_best_member_and_says_how_to_add_it():
     (words,) = D.family_words(kept, "surface_friction")
     assert "BIC chose order 1" in words and "--effect surface_friction:1" in words
     assert D.family_words(kept, "camera_latency") == [] and D.family_words(kept, "none") == []
+    fresh = [D.Candidate("surface_friction", "motion", c.delta_bic, float("nan"), "", 0.0, order=c.order) for c in fam]
+    assert D.family_best(fresh, {"surface_friction": 3}) == [2] and not any(c.orders for c in fresh)   # pure
     confirmed = [([*fam, one])[i] for i in D.best_of_family([*fam, one], {"surface_friction": 2})]
     assert confirmed[0].order == 2 and confirmed[0].delta_bic == -3.9 and confirmed[0].orders == best.orders
     confirmed[0].confirmed = {1: 41_378.5, 2: 41_415.3}

@@ -309,10 +309,10 @@ def family_members(cls) -> list:
     return [cls.of_order(k) for k in cls.orders] if cls.orders else [cls]
 
 
-def best_of_family(cands: list[Candidate], chosen: dict | None = None) -> list[int]:
-    """Indices (in order) of the candidates kept: per effect the member with the lowest delta BIC among those that
+def family_best(cands: list[Candidate], chosen: dict | None = None) -> list[int]:
+    """Indices (in order) of the candidate kept per effect: the member with the lowest delta BIC among those that
     lower it with a fit that can happen (any, when none does), or the order ``chosen`` names for it (a member
-    confirmed on the calibration's graph), which records every member's delta BIC in ``orders``."""
+    confirmed on the calibration's graph). Changes nothing."""
     best: dict[str, int] = {}
     chosen = chosen or {}
 
@@ -325,11 +325,17 @@ def best_of_family(cands: list[Candidate], chosen: dict | None = None) -> list[i
                 best[c.effect] = i
         elif c.effect not in best or rank(c) < rank(cands[best[c.effect]]):
             best[c.effect] = i
-    for i in best.values():
+    return sorted(best.values())
+
+
+def best_of_family(cands: list[Candidate], chosen: dict | None = None) -> list[int]:
+    """:func:`family_best`, each kept member of a family recording every member's delta BIC in ``orders``."""
+    keep = family_best(cands, chosen)
+    for i in keep:
         c = cands[i]
         if c.order is not None:
             c.orders = {k.order: k.delta_bic for k in cands if k.effect == c.effect}
-    return sorted(best.values())
+    return keep
 
 
 def leading(cands: list[Candidate], options: DiagnoseOptions = DEFAULTS) -> list[Candidate]:

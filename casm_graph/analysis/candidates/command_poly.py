@@ -17,8 +17,8 @@ import numpy as np
 from casm_graph.analysis.candidates.base import Bench
 from casm_graph.analysis.candidates.pool import call, parallel
 from casm_graph.analysis.diagnosis import (DEFAULTS, NO_FOLDS, Candidate, DiagnoseOptions, best_of_family,
-                                           chosen_candidates, family_members, folds, leading, predicted_sightings,
-                                           standardised)
+                                           chosen_candidates, family_best, family_members, folds, leading,
+                                           predicted_sightings, standardised)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.residuals import sighting_leverage, sighting_residuals
 from casm_graph.fit.result import Fit
@@ -295,7 +295,7 @@ class CommandBench(Bench):
         o = self.options
         if not o.confirm_members:
             return {}
-        best = [cands[i] for i in best_of_family(cands)]
+        best = [cands[i] for i in family_best(cands)]
         effects = {(e.name, e.order): e for e in fitted}
         todo = {}
         for lead in leading(best, o):
