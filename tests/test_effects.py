@@ -227,6 +227,7 @@ def test_a_floor_that_changes_the_speed_beyond_physics_is_implausible():
     entry = {**grid.describe(np.array([0.9, -0.9, 0.0, 0.0, 1.0]))}
     assert unphysical(get("surface_friction:2"), entry) == grid.implausible(np.array([0.9, -0.9, 0.0, 0.0, 1.0]))
     assert unphysical(get("battery_fade"), {"rate": 50.0}) is None                    # effects without the hook
+    assert unphysical(get("regional_motion_noise"), {"k_r": [1.0, 2.0]}) is None      # list-valued entries too
 
 
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):

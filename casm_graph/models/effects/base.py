@@ -189,9 +189,12 @@ def _rebuilt(kind, state: dict) -> Effect:
 def unphysical(cls: type[Effect], entry: dict, log: Log | None = None) -> str | None:
     """Why the model.json ``entry`` of effect class ``cls`` (``describe``'s output) cannot happen, or None
     (:meth:`Effect.implausible`)."""
+    if cls.implausible is Effect.implausible:        # every fit of it can happen (a region's list of levels, ...)
+        return None
     eff = cls(log)
     eff.restore(entry)
-    return eff.implausible(np.array([float(entry.get(p, s)) for p, s in zip(eff.params, eff.start)]))
+    return eff.implausible(np.concatenate([np.ravel(np.asarray(entry.get(p, s), float))
+                                           for p, s in zip(eff.params, eff.start)]))
 
 
 def spec(cls: type[Effect]):
