@@ -7,6 +7,8 @@ import numpy as np
 
 from casm_graph.models.model import Model
 
+LIKELIHOOD_DROP = 20.0     # nats: a fit with effects this far below the same log's fit without them stopped short
+
 
 @dataclass
 class Fit:
