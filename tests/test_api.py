@@ -199,6 +199,10 @@ def test_diagnose_and_uncertainty_from_a_calibration(bundle, cal, tmp_path):
     diag.save(tmp_path / "diag")
     saved = json.loads((tmp_path / "diag" / "diagnosis.json").read_text())
     assert saved["verdict"] == diag.verdict and saved["options"] == strict.to_json()
+    diag.candidates[0].implausible = "the floor would stop the robot's drive over part of the field"
+    diag.save(tmp_path / "aside")                            # a fit set aside is marked where the candidates are listed
+    assert "Set aside, not physical:</b> the floor would stop" in (tmp_path / "aside" / "report.html").read_text()
+    assert json.loads((tmp_path / "aside" / "diagnosis.json").read_text())["candidates"][0]["implausible"]
     post = cg.uncertainty(log, cal, walkers=12, max_steps=60, seed=1)
     assert set(post.intervals) >= {"reading_sigma", "bearing_sigma"}
     post.save(tmp_path / "unc")

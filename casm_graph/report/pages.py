@@ -594,7 +594,9 @@ def diagnosis(path: Path, log: Log, diag) -> None:
         + (f"<br><small>by order: {', '.join(f'{k}: {v:.1f}' for k, v in sorted(c.orders.items()))}</small>"
            if c.orders else "") + "</td>"
         f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items() if isinstance(v, (int, float))))}</td>"
-        f"<td style='text-align:left'>{e(c.explanation)}</td></tr>" for c in diag.candidates)
+        f"<td style='text-align:left'>"
+        + (f"<b>Set aside, not physical:</b> {e(c.implausible)}. " if c.implausible else "")
+        + f"{e(c.explanation)}</td></tr>" for c in diag.candidates)
     skipped = "".join(f"<li>{e(k)}: {e(v)}</li>" for k, v in diag.skipped.items())
     sections = [f"<h2>Where the model fails</h2>{_failure_panels(diag)}",
                 f"<h2>On the field</h2>{png(field_heatmap(diag))}"]
