@@ -45,12 +45,7 @@ def begin(effects: list[Effect], model: Model, poses: np.ndarray) -> None:
 def theta_from_model(effects: list[Effect], model: Model) -> np.ndarray:
     """Effect parameters stored in ``model.effects``, or each effect's start where absent (what else an entry
     records, each effect takes back through ``restore``)."""
-    vals = []
-    for e in effects:
-        stored = model.effects.get(e.name, {})
-        e.restore(stored)
-        vals.extend(float(stored.get(p, s)) for p, s in zip(e.params, e.start))
-    return np.array(vals, float)
+    return np.array([v for e in effects for v in e.theta_of(model.effects.get(e.name, {}))], float)
 
 
 def reading_scale(effect_slices, theta: np.ndarray, distance: np.ndarray) -> np.ndarray:

@@ -269,13 +269,13 @@ class CommandBench(Bench):
                     continue
                 ll, m, prediction = next(settled_fits)
                 gain = float(ll - self.ll0)
+                entry = dict(m.effects.get(e.name, {}))
                 cands.append(Candidate(effect=e.name, channel=e.channel,
                                        delta_bic=-2 * gain + e.free_parameters() * np.log(n),
                                        heldout_nll_drop=float("nan"), explanation=e.physics,
-                                       delta_log_likelihood=gain, parameters=dict(m.effects.get(e.name, {})),
+                                       delta_log_likelihood=gain, parameters=entry,
                                        order=e.order if e.orders else None, heldout_skipped=NO_FOLDS,
-                                       prediction=prediction,
-                                       implausible=unphysical(type(e), m.effects.get(e.name, {}), log) or ""))
+                                       prediction=prediction, implausible=unphysical(type(e), entry, log) or ""))
                 settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
                 self.coarse_fits[id(cands[-1])] = m
         cands = [cands[i] for i in best_of_family(cands, self.confirm(cands, fitted))]   # BIC keeps one member

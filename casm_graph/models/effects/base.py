@@ -102,6 +102,12 @@ class Effect:
     def describe(self, theta: np.ndarray) -> dict:
         return {**{p: float(v) for p, v in zip(self.params, theta)}, **({"order": self.order} if self.orders else {})}
 
+    def theta_of(self, entry: dict) -> np.ndarray:
+        """The parameters a model.json ``entry`` records (its start where one is absent), after taking back what
+        else it records (:meth:`restore`)."""
+        self.restore(entry)
+        return np.array([float(entry.get(p, s)) for p, s in zip(self.params, self.start)])
+
     def restore(self, entry: dict) -> None:
         """Take back what ``describe`` recorded beside the parameters from a model.json entry: a family's order
         (its parameters follow), and in a subclass what else it records (a field's extent)."""
@@ -192,9 +198,7 @@ def unphysical(cls: type[Effect], entry: dict, log: Log | None = None) -> str | 
     if cls.implausible is Effect.implausible:        # every fit of it can happen (a region's list of levels, ...)
         return None
     eff = cls(log)
-    eff.restore(entry)
-    return eff.implausible(np.concatenate([np.ravel(np.asarray(entry.get(p, s), float))
-                                           for p, s in zip(eff.params, eff.start)]))
+    return eff.implausible(eff.theta_of(entry))
 
 
 def spec(cls: type[Effect]):
