@@ -1,7 +1,10 @@
 """Fit a model with effects on the full graph, warm-started from a fitted model and its trajectory.
 
 Rounds of least squares over poses, table, polynomial and the effects' parameters, each followed
-by the noise step (sigmas and noise-only effect parameters), as the base method does.
+by the noise step (sigmas and noise-only effect parameters), as the base method does. The least squares
+maximise the joint density, the fit is judged by the Laplace log-likelihood: a fit whose rounds leave it more
+than ``LIKELIHOOD_DROP`` below where it started (or below an earlier round) returns that better state, so that
+a model with an effect added never reads worse than the model it started from.
 """
 from __future__ import annotations
 
@@ -9,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from casm_graph.fit.result import LIKELIHOOD_DROP
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import begin, estimate_noise, instantiate, theta_from_model
@@ -32,6 +36,8 @@ class EffectFit:
     log_likelihood: float
     iterations: int
     cost: list
+    kept_round: int | None = None      # the earlier state returned (0: the start) when the last round fell below it
+    last_log_likelihood: float | None = None   # ... and where that last round ended
 
 
 def describe(effects: list[Effect], problem: Problem, theta: np.ndarray) -> dict:
@@ -52,15 +58,14 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
     begin(effects, model, poses)
     th = theta_from_model(effects, model) if theta is None else np.asarray(theta, float)
     cost, its = [], 0
-    problem = Problem(log, model, effects, theta=th, obs_mask=obs_mask, huber=False,
-                      anchor=G.heading_anchor(log, poses))
+    anchor = G.heading_anchor(log, poses)
+    problem = Problem(log, model, effects, theta=th, obs_mask=obs_mask, huber=False, anchor=anchor)
     st = problem.state(poses, model, th)
+    problem.refresh_noise_state(st)
+    best = (problem.log_likelihood(st), model, st, 0) if fit_parameters else None
     mixture = any(e.outlier_fraction(th[sl]) > 0 for e, sl in zip(effects, problem.slices))
     # with fixed parameters one round, or two for a mixture, whose inlier weights follow the poses
     for r in range(rounds if fit_parameters else 1 + mixture):
-        problem = Problem(log, model, effects, theta=st.theta, obs_mask=obs_mask, huber=False,
-                          anchor=G.heading_anchor(log, poses))
-        problem.refresh_noise_state(st)
         st, h = least_squares(problem, st, max_iterations=iterations, on_iteration=on_iteration,
                               freeze_parameters=not fit_parameters, rel_tol=rel_tol)
         its += h.iterations
@@ -69,9 +74,24 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
         if fit_parameters and fit_noise:
             model, theta_new = estimate_noise(problem, st, model, seed=seed + r)
             st = State(st.poses, st.velocities, st.poly, theta_new)
-    problem = Problem(log, model, effects, theta=st.theta, obs_mask=obs_mask, huber=False,
-                      anchor=G.heading_anchor(log, poses))
-    problem.refresh_noise_state(st)
+        problem = judged(log, model, effects, st.theta, obs_mask, anchor, st)
+        if best is not None and r < rounds - 1:
+            ll = problem.log_likelihood(st)
+            if ll > best[0]:
+                best = (ll, model, st, r + 1)
     ll = problem.log_likelihood(st)
+    kept = last = None
+    if best is not None and ll < best[0] - LIKELIHOOD_DROP:
+        last = ll
+        ll, model, st, kept = best
+        problem = judged(log, model, effects, st.theta, obs_mask, anchor, st)
     model = model.with_(effects=describe(effects, problem, st.theta))
-    return EffectFit(model, st.poses, st.theta, effects, problem, st, ll, its, cost)
+    return EffectFit(model, st.poses, st.theta, effects, problem, st, ll, its, cost, kept, last)
+
+
+def judged(log, model, effects, theta, obs_mask, anchor, st: State) -> Problem:
+    """The effect graph of ``model`` with its reading scales and inlier weights taken at ``st``: what a round's
+    least squares run on and the log-likelihood is read from."""
+    problem = Problem(log, model, effects, theta=theta, obs_mask=obs_mask, huber=False, anchor=anchor)
+    problem.refresh_noise_state(st)
+    return problem

@@ -83,10 +83,22 @@ def warn_if_worse(fit: Fit, classes: list) -> None:
     model with them holds the one without (each effect at its neutral value), so their fit stopped in a local
     optimum (an omni world's carpet patch: 36,783 without it, 36,477 with its slow-down at -4.3). Where the fit
     without them was refitted as the effects' was (``refit_log_likelihood``: an action table's base holds its own
-    noise levels), that is the one compared, and a base that only its own noise levels keep above both is said
-    (the notebook's glare at 0.2: -14,412 held, -15,971 refitted, -15,600 with the glare). Noise effects change what
-    the likelihood counts (a mixture scores every sighting) and are not compared."""
+    noise levels), that is the one compared, and a base that only its own noise levels keep above both is said.
+    An action table's effect fit whose last round fell below its start or an earlier round returns that state
+    (``kept_round``: the notebook's glare at 0.2, whose rounds fall from -14,425 to -15,600): said first. Noise
+    effects change what the likelihood counts (a mixture scores every sighting) and are not compared."""
     base = fit.notes.get("base_log_likelihood")
+    kept = fit.notes.get("kept_round")
+    if kept is not None and classes:
+        names = ", ".join(c.name for c in classes)
+        where = ("its start (the base's model and poses, the effects at their start values)" if kept == 0 else
+                 f"its round {kept}")
+        warnings.warn(f"adding {names}: the fit's last round left the log-likelihood at "
+                      f"{fit.notes['last_log_likelihood']:,.1f}, below {fit.log_likelihood:,.1f} at {where}, which "
+                      f"is kept: least squares from the base's poses fall into a worse optimum, so the base misfits "
+                      f"this log in a way {names} does not mend (check the base's report, and `diagnose`)",
+                      RuntimeWarning, stacklevel=3)
+        return
     if base is None or not classes or any(c.noise_only for c in classes) or fit.log_likelihood >= base - LIKELIHOOD_DROP:
         return
     names = ", ".join(c.name for c in classes)

@@ -55,7 +55,8 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
         if not e.noise_only:
             cols = [na + D + int(np.flatnonzero(ef.problem.ls_index == i)[0]) for i in range(s.start, s.stop)]
             effect_std[e.name] = {p: float(sd[c]) for p, c in zip(e.params, cols)}
-    refit = {}
+    refit = {} if ef.kept_round is None else {"kept_round": ef.kept_round,
+                                               "last_log_likelihood": ef.last_log_likelihood}
     if ef.log_likelihood < fit.log_likelihood - LIKELIHOOD_DROP and not any(e.noise_only for e in ef.effects):
         # the base's figure holds its own noise levels: the base refitted as the effects were, to compare with
         refit["refit_log_likelihood"] = effect_fit.fit(log, fit.model, fit.poses, [], seed=seed,
