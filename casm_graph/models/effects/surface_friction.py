@@ -153,8 +153,8 @@ class SurfaceFriction(Effect):
 
     def implausible(self, theta):
         """A floor lets the robot run at most ``FASTEST`` times as fast over one part as over another, driving or
-        turning: a fit that says more bends the floor around something else (an independent world's window glare
-        fitted as a 0.6-m strip where the robot ran 4.5 times as fast as elsewhere)."""
+        turning: a fit that says more bends the floor around something else (a window glare hidden from the model
+        can be fitted as a 0.6-m strip where the robot runs 4.5 times as fast as elsewhere)."""
         theta = np.asarray(theta, float)
         field, share = theta[:-1], float(theta[-1])
         if self.order == PATCH:
