@@ -367,6 +367,7 @@ def test_an_effect_fit_that_falls_keeps_its_best_round_and_says_so():
     assert glare.fit.log_likelihood > notes["last_log_likelihood"] + 20
     assert glare.fit.log_likelihood > base.fit.log_likelihood - 20
     assert glare.model.fit["log_likelihood"] == glare.fit.log_likelihood
+    assert glare.model.fit["kept_round"] == notes["kept_round"]            # model.json records it
 
 
 def test_a_base_that_misfits_badly_is_compared_refitted_as_the_effects_were():

@@ -66,7 +66,8 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
                            reading_poly_cov=cov_t[na:na + D, na:na + D],
                            fit={**fit.model.fit, "iterations": fit.model.fit.get("iterations", 0) + ef.iterations,
                                 "seconds": round(fit.model.fit.get("seconds", 0) + time.perf_counter() - t0, 3),
-                                "log_likelihood": ef.log_likelihood, "effects_std": effect_std})
+                                "log_likelihood": ef.log_likelihood, "effects_std": effect_std,
+                                **({} if ef.kept_round is None else {"kept_round": ef.kept_round})})
     return Fit(model=model, poses=ef.poses, pose_std=pose_std, cost=fit.cost + ef.cost,
                stages=fit.stages + ["effects"] * len(ef.cost), iterations=fit.iterations + ef.iterations,
                converged=fit.converged, log_likelihood=ef.log_likelihood,
