@@ -55,12 +55,12 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
         if not e.noise_only:
             cols = [na + D + int(np.flatnonzero(ef.problem.ls_index == i)[0]) for i in range(s.start, s.stop)]
             effect_std[e.name] = {p: float(sd[c]) for p, c in zip(e.params, cols)}
-    refit = {} if ef.kept_round is None else {"kept_round": ef.kept_round,
-                                               "last_log_likelihood": ef.last_log_likelihood}
+    compared = {} if ef.kept_round is None else {"kept_round": ef.kept_round,
+                                                  "last_log_likelihood": ef.last_log_likelihood}
     if ef.log_likelihood < fit.log_likelihood - LIKELIHOOD_DROP and not any(e.noise_only for e in ef.effects):
         # the base's figure holds its own noise levels: the base refitted as the effects were, to compare with
-        refit["refit_log_likelihood"] = effect_fit.fit(log, fit.model, fit.poses, [], seed=seed,
-                                                       obs_mask=kept(log, fit)).log_likelihood
+        compared["refit_log_likelihood"] = effect_fit.fit(log, fit.model, fit.poses, [], seed=seed,
+                                                          obs_mask=kept(log, fit)).log_likelihood
     pose_std = world_std(ef.poses, np.sqrt(np.einsum("kii->ki", cov_p)), cov_p[:, :2, :2])
     model = ef.model.with_(velocity_std=sd[:na].reshape(-1, 3), reading_poly_std=sd[na:na + D],
                            reading_poly_cov=cov_t[na:na + D, na:na + D],
@@ -71,7 +71,7 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     return Fit(model=model, poses=ef.poses, pose_std=pose_std, cost=fit.cost + ef.cost,
                stages=fit.stages + ["effects"] * len(ef.cost), iterations=fit.iterations + ef.iterations,
                converged=fit.converged, log_likelihood=ef.log_likelihood,
-               notes={**fit.notes, "base_log_likelihood": fit.log_likelihood, **refit,
+               notes={**fit.notes, "base_log_likelihood": fit.log_likelihood, **compared,
                       "hooked_effects": [type(e) for e in ef.effects]})
 
 
