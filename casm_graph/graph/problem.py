@@ -169,7 +169,7 @@ class Problem:
     # ------------------------------------------------------------- evaluation
     def sensor_context(self, st: State) -> dict:
         """Context of every observation under ``st`` (the velocity the action part gives a sighting)."""
-        v, _ = self.action.sighting_velocity(st.poses, st.action, st.theta)
+        v, _ = self.action.sighting_velocity(st.poses, st.action, st.theta, jacobian=False)
         return {"t": self.log.obs_t - self.log.t[0], "landmark": self.obs_lm, "pan": self.pan, "velocity": v}
 
     def _sensor_fn(self, ctx):
@@ -233,7 +233,7 @@ class Problem:
             if self.obs_carry is not None:
                 Hr, Hb = np.einsum("ni,nij->nj", Hr, Jpr), np.einsum("ni,nij->nj", Hb, Jpb)
             return er[:, 0], eb[:, 0], Hr, Hb, Tr, Tb
-        v, dv = self.action.sighting_velocity(st.poses, st.action, st.theta)
+        v, dv = self.action.sighting_velocity(st.poses, st.action, st.theta, jacobian=jacobians and parameters)
         ctx = {"t": self.log.obs_t - self.log.t[0], "landmark": self.obs_lm, "pan": self.pan, "velocity": v}
         ls_eff = [s for e, s in self.sensor_effects if not e.noise_only]
         uses_velocity = any(getattr(e, "uses_velocity", False) for e, _ in self.sensor_effects)

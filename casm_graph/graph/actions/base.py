@@ -104,9 +104,9 @@ class ActionPart:
         effects' least-squares parameters (S, 3, len(ls_index)) or None (``parameters`` False: both None)."""
         raise NotImplementedError
 
-    def sighting_velocity(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray):
+    def sighting_velocity(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray, jacobian: bool = True):
         """(N, 3) body velocity each sighting's sensor hooks read (a latency's), and its derivative (N, 3, n) with
-        respect to the parameters (effects aside)."""
+        respect to the parameters (effects aside; None unless ``jacobian``)."""
         raise NotImplementedError
 
     def step_velocities(self, poses: np.ndarray, x: np.ndarray, theta: np.ndarray) -> np.ndarray:

@@ -252,9 +252,11 @@ class CommandPoly(ActionPart):
                 Ht[:, :, j] = column(p, th, th, int(col))
         return e, [Ha, Hb], Hx, Ht
 
-    def sighting_velocity(self, poses, x, theta):
+    def sighting_velocity(self, poses, x, theta, jacobian=True):
         nv, ny = self.nv, self.ny
         v = self._velocities(np.asarray(x, float), self.Bv_obs, self.By_obs, self.Bw_obs)
+        if not jacobian:
+            return v, None
         dv = np.zeros((len(v), 3, self.n))
         dv[:, 0, :nv], dv[:, 1, nv:nv + ny], dv[:, 2, nv + ny:] = self.Bv_obs, self.By_obs, self.Bw_obs
         return v, dv

@@ -38,11 +38,7 @@ class TableActions(ActionPart):
         t_rel = log.t[lay.knots[:-1]] - log.t[0]
         self.m_ctx = {"t": t_rel, "since": t_rel - t_rel[start_idx], "dt": lay.seg_dt * lay.seg_steps}
         self.window = velocity_window(model, effects)
-        if self.window > 0:           # each sighting's share of every action over the window: its velocity's derivative
-            share = sighting_means(log, np.eye(self.A)[np.repeat(act, lay.seg_steps)], self.window)
-            self.obs_dv = np.zeros((len(log.obs_t), 3, self.n))
-            for c in range(3):
-                self.obs_dv[:, c, c::3] = share
+        self._window_dv = None
 
     @classmethod
     def default_layout(cls, log, model: Model) -> G.Layout:
@@ -95,14 +91,28 @@ class TableActions(ActionPart):
                 Hx[rows, :, 3 * self.prev_row + c] += prev[:, :, c]
         return e, [Ha, Hb], Hx, d_theta
 
-    def sighting_velocity(self, poses, x, theta):
+    def window_dv(self) -> np.ndarray:
+        """(N, 3, n): each sighting's share of every action over the velocity window, its velocity's derivative
+        (built when first asked: dense in the actions, too large on a graph whose every step is an action)."""
+        if self._window_dv is None:
+            lay = self.lay
+            share = sighting_means(self.log, np.eye(self.A)[np.repeat(lay.seg_action, lay.seg_steps)], self.window)
+            self._window_dv = np.zeros((len(self.log.obs_t), 3, self.n))
+            for c in range(3):
+                self._window_dv[:, c, c::3] = share
+        return self._window_dv
+
+    def sighting_velocity(self, poses, x, theta, jacobian=True):
         """The velocity of the step before each sighting, or with a velocity window (a latency's delay) the mean
         over the window, which spans an action change when one falls within it; the derivative is the table rows'
         (effects aside)."""
         v = self.step_velocity(poses, x, theta)
         if self.window > 0:
-            return sighting_means(self.log, np.repeat(v, self.lay.seg_steps, axis=0), self.window), self.obs_dv
+            v = sighting_means(self.log, np.repeat(v, self.lay.seg_steps, axis=0), self.window)
+            return v, (self.window_dv() if jacobian else None)
         step = np.clip(self.log.obs_step - 1, 0, len(v) - 1)
+        if not jacobian:
+            return v[step], None
         row = self.lay.seg_action[step]
         dv = np.zeros((len(step), 3, self.n))
         for c in range(3):
