@@ -1,7 +1,8 @@
 """The EKFS E-step of the EKFS-EM paper, compiled: forward EKF, backward information filter, two-filter smoother.
 
 Poses s_k = (x, y, theta) live at pose steps k = 0..T; step k runs an action with per-step body
-displacement u_k = v dt and process noise R(theta) diag(sigma_A^2) R(theta)^T. Frame k may carry
+displacement u_k = v dt and process noise R(theta) diag(sigma_A,k^2) R(theta)^T (``act_sig`` (T, 3), one row
+per step: :func:`step_sigmas`). Frame k may carry
 sightings o = (reading, bearing) of known landmarks, h(s) = (f(dist), angle - theta). The
 backward filter starts with infinite covariance (zero information) and is linearised at the
 forward filter's means. All per-step 3x3 algebra runs in numba.
@@ -12,6 +13,14 @@ import math
 
 import numpy as np
 from numba import njit
+
+
+def step_sigmas(sigma, dt: np.ndarray) -> np.ndarray:
+    """(T, 3) process-noise std of each step: ``sigma`` per step of the median length, grown with the step's time
+    (a random walk, as the graph's motion factors say), so a one-second gap in a real robot's odometry counts as
+    the hundred steps it spans."""
+    dt = np.asarray(dt, float)
+    return np.asarray(sigma, float)[None, :] * np.sqrt(dt / np.median(dt))[:, None]
 
 
 @njit(cache=True)
@@ -111,7 +120,7 @@ def forward(mu0, P0, u, act_sig, obs_ptr, obs_lm, obs_r, obs_b, poly, s_r, s_b, 
             g, F = _predict_jac(m, u[k])
             m = g
             m[2] = _wrap(m[2])
-            C = F @ C @ F.T + _process(mu[k, 2], act_sig)
+            C = F @ C @ F.T + _process(mu[k, 2], act_sig[k])
     return mu, P, loglik, m2
 
 
@@ -133,7 +142,7 @@ def backward(ref, u, act_sig, obs_ptr, obs_lm, obs_r, obs_b, poly, s_r, s_b, use
     for k in range(K - 1, -1, -1):
         if k < K - 1:
             g, F = _predict_jac(ref[k], u[k])
-            Q = _process(ref[k, 2], act_sig)
+            Q = _process(ref[k, 2], act_sig[k])
             A = _inv3(I3 + L @ Q)
             M = A @ L
             M = 0.5 * (M + M.T)
@@ -290,7 +299,7 @@ def _normal_equations(z, a, Ia, Lk, ek, u, w):
 def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True):
     """E[d(s_k, s_{k+1})] per step under the pairwise posterior alpha_k(s_k) delta_{k+1}(s_{k+1}) f_A(d) (eq. 6).
 
-    f_A has the previous iteration's per-step mean ``u_prev[k]`` and covariance diag(act_sig^2).
+    f_A has the previous iteration's per-step mean ``u_prev[k]`` and covariance diag(act_sig[k]^2).
     As in the paper d is linearised and the three Gaussians multiplied in closed form, but at the
     mode of the pairwise posterior (Gauss-Newton from the action model's prediction, delta kept in
     the information form the backward filter gives) rather than at the mean of alpha * delta:
@@ -304,8 +313,8 @@ def action_means(mu_a, P_a, Ld, ed, u_prev, act_sig, iterations=5, variance=True
     n = u_prev.shape[0]
     out = np.empty((n, 3))
     var = np.zeros((n, 3)) if variance else None
-    w = 1.0 / act_sig ** 2
     for k in range(n):
+        w = 1.0 / act_sig[k] ** 2
         a = mu_a[k]
         Ia = _inv3(P_a[k])
         g0, _ = _predict_jac(a, u_prev[k])

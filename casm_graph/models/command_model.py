@@ -121,9 +121,10 @@ class CommandModel:
 
     def fitted_to_steps(self, log, moved: np.ndarray) -> "CommandModel":
         """The maps' regression on their basis of the steps' displacements ``moved`` (T, 3): forward on the v map,
-        sideways on the vy map (none without ``vy``), turn on the w map."""
+        sideways on the vy map (none without ``vy``), turn on the w map, each step weighed by 1 / its length."""
         dt = np.asarray(log.dt, float)[:, None]
-        parts = [np.linalg.lstsq(b * dt, moved[:, axis], rcond=None)[0] if b.shape[1] else np.zeros(0)
+        w = 1.0 / np.sqrt(dt)            # a step's noise grows with its time (as the graph's motion factors say)
+        parts = [np.linalg.lstsq(b * dt * w, moved[:, axis] * w[:, 0], rcond=None)[0] if b.shape[1] else np.zeros(0)
                  for b, axis in zip(self.basis(log.controls, log.dt), (0, 1, 2))]
         return self.with_params(np.concatenate(parts))
 

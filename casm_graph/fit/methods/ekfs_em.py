@@ -106,10 +106,11 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     progress.stage("ekfs-em", max_iterations)
     for it in range(max_iterations):
         u = model.step_velocities(log) * dt[:, None]
-        mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
+        step_sig = ekfs.step_sigmas(sig, dt)
+        mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, step_sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         if it == 0:
             use = ~(m2 > outlier_m2)
-            mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
+            mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, step_sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         model = model.with_(reading_poly=poly.copy(), reading_sigma=s_r, bearing_sigma=s_b, motion_noise=sig.copy())
         history["log_likelihood"].append(float(ll))
         err = velocity_errors(model, truth)
@@ -127,16 +128,16 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         if it - best[1] >= patience:
             break
 
-        Lb, eb, Ld, ed = ekfs.backward(mu_a, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
+        Lb, eb, Ld, ed = ekfs.backward(mu_a, u, step_sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         mu_g, P_g = ekfs.smooth(mu_a, P_a, Lb, eb)
         if need_poses:
             best = (best[0], best[1], best[2], (mu_g, P_g))
-        d, d_var = ekfs.action_means(mu_a, P_a, Ld, ed, u, sig, variance=learn_action_noise)
+        d, d_var = ekfs.action_means(mu_a, P_a, Ld, ed, u, step_sig, variance=learn_action_noise)
         model = model.fitted_to_steps(log, d)
         if learn_action_noise:
             resid = d - model.step_velocities(log) * dt[:, None]
             resid[:, 2] = wrap(resid[:, 2])
-            em = np.sqrt(np.mean(resid ** 2 + d_var, axis=0))
+            em = np.sqrt(np.mean((resid ** 2 + d_var) * (np.median(dt) / dt)[:, None], axis=0))   # per median step
             sig = np.maximum(sig * (em / sig) ** overrelax, MIN_ACTION_SIGMA)
 
         k = log.obs_step[order]
@@ -155,7 +156,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
 
     ll, best_it, model, poses = best
     if poses is None:
-        Lb, eb, _, _ = ekfs.backward(mu_a, u, sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
+        Lb, eb, _, _ = ekfs.backward(mu_a, u, step_sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         poses = ekfs.smooth(mu_a, P_a, Lb, eb)
     mu_g, P_g = poses
     d = np.hypot(*(log.landmark_xy[log.landmark_index] - mu_g[log.obs_step, :2]).T)

@@ -49,7 +49,10 @@ class TableActions(ActionPart):
         return np.zeros(self.n), np.full(self.n, G.VELOCITY_PRIOR_SIGMA)
 
     def motion_sigma(self, model: Model, poses=None) -> np.ndarray:
-        return np.asarray(model.motion_noise, float)[None, :] * np.sqrt(self.lay.seg_steps)[:, None]
+        """The levels per step of the log's median length, grown with the segment's time (a random walk): a log
+        whose steps vary in length (a real robot's odometry with gaps) trusts a one-second step less."""
+        seconds = self.lay.seg_steps * self.lay.seg_dt / float(np.median(self.log.dt))
+        return np.asarray(model.motion_noise, float)[None, :] * np.sqrt(seconds)[:, None]
 
     def _fn(self, theta):
         return motion_function(self.motion_effects, self.m_ctx, theta)
