@@ -36,13 +36,13 @@ def test_two_workers_give_the_one_process_diagnosis(tmp_path):
 
 def test_a_command_map_s_candidates_on_two_workers(tmp_path):
     """Continuous commands with a second-order lag (the independent world): the lag's profile, hooked effects (a
-    latency, a fade, a friction field) and a noise effect, and, with ``decide_rounds``, the leaders (the lag and the
+    latency, a fade, a friction field) and a noise effect, and, with ``leader_rounds``, the leaders (the lag and the
     latency) settled again on the workers."""
     generate(tmp_path / "log", kind="continuous", minutes=2, seed=1, effect="actuator_lag")
     log = cg.load_log(tmp_path / "log")
     cal = cg.calibrate(log, seed=1)
     asked = ["actuator_lag", "camera_latency", "battery_fade", "surface_friction", "range_dependent_noise"]
-    decide = cg.DiagnoseOptions(decide_rounds=6)
+    decide = cg.DiagnoseOptions(leader_rounds=6)
     one, two = (cg.diagnose(log, cal, candidates=asked, workers=w, options=decide) for w in (1, 2))
     assert {c.effect for c in two.candidates[:2]} == {"actuator_lag", "camera_latency"}
     assert two.candidates[0].delta_bic < -10

@@ -315,13 +315,13 @@ def test_a_rug_with_sharp_edges_is_fitted_as_a_patch_and_leaves_nothing_behind(t
 def test_a_strong_latency_of_a_continuous_robot_is_not_taken_for_a_lag(tmp_path):
     """Independent world, continuous robot, seed 7, 4 minutes: a camera latency of 0.175 s. The base's smoothed
     poses take the delayed images in, so they resemble the lag's; the latency has to move them back. With the
-    leaders settled until the log-likelihood stops moving (``decide_rounds``, off by default), the latency wins
+    leaders settled until the log-likelihood stops moving (``leader_rounds``, off by default), the latency wins
     (with two rounds the lag does, by 950 in BIC, the latency its look-alike; adding the lag leaves the trajectory
     0.051 m from the truth against 0.010 m with the latency)."""
     generate(tmp_path / "log", kind="continuous", minutes=4, seed=7, effect="camera_latency")
     log = cg.load_log(tmp_path / "log")
     diag = cg.diagnose(log, cg.calibrate(log, seed=7), candidates=["actuator_lag", "camera_latency"],
-                       options=cg.DiagnoseOptions(decide_rounds=40))
+                       options=cg.DiagnoseOptions(leader_rounds=40))
     assert diag.verdict == "camera_latency", [(c.effect, c.delta_bic) for c in diag.candidates]
     assert abs(diag.candidates[0].parameters["delay"] - 0.175) < 0.01
 

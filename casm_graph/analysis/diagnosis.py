@@ -76,29 +76,29 @@ class DiagnoseOptions:
     lookalike_gain: float = 0.5        # ... and the runner-up gains at least this share of the verdict's delta BIC
     screen_share: float = 0.25         # action tables: a candidate is fitted only when the score test predicts a gain
     #                                    (twice the log-likelihood) of at least this share of its BIC penalty (0: all)
-    candidate_rounds: int = 2          # action tables: noise-step rounds fitting each candidate (and the base). Three
-    #                                    let a latency whose poses must move from the base's reach its optimum (table
-    #                                    seed 3: -2,158 against the lag's -2,053; with two -1,820 against -1,912, its
-    #                                    look-alike), but cost 1.16x the diagnosis (Aibo lag10: about 3.0x calibrate)
-    candidate_iterations: int = 8      # and LM iterations per round
-    leader_rounds: int = 3             # action tables: when two or more candidates lead (supported by BIC, each with at
-    #                                    least ``lookalike_gain`` of the best's delta BIC), they and the base go on from
-    #                                    their fits to this many rounds in all before the held-out folds: the independent
-    #                                    world's table latencies are named 10 of 10 (8 with two), at 1.06x the diagnosis
-    #                                    on Aibo lag10, where lag and latency lead (0 or <= candidate_rounds: never)
+    candidate_rounds: int = 2          # noise-step rounds fitting (settling) each candidate and the base. On action
+    #                                    tables three let a latency whose poses must move from the base's reach its
+    #                                    optimum (table seed 3: -2,158 against the lag's -2,053; with two -1,820
+    #                                    against -1,912, its look-alike), but cost 1.16x the diagnosis (Aibo lag10:
+    #                                    about 3.0x calibrate); on continuous logs a latency's velocity window follows
+    #                                    its delay from one round to the next
+    candidate_iterations: int = 8      # and LM iterations per round (continuous logs: also re-settling the model
+    #                                    before its residuals)
+    leader_rounds: int | None = None   # when two or more candidates lead (supported by BIC, each with at least
+    #                                    ``lookalike_gain`` of the best's delta BIC), they and the base go on from their
+    #                                    fits to this many rounds in all (continuous logs: at most, until the
+    #                                    log-likelihood moves by less than a nat) before the verdict; 0 or at most
+    #                                    candidate_rounds: never. None: the kind's own (LEADER_ROUNDS): 3 on action
+    #                                    tables, where the independent world's latencies are then named 10 of 10 (8
+    #                                    with two), at 1.06x the diagnosis on Aibo lag10; off on continuous logs, where
+    #                                    40 names the independent world's strong latencies (seeds 7, 9, 10: the latency
+    #                                    ahead by 138-1,100; with two the lag by 53-950), but a two-minute lag world
+    #                                    then goes to the latency (-24,878 against -24,663), the lag's delay held at its
+    #                                    two-round profile
     folds: int = 3                     # time-blocked held-out folds
     fold_iterations: int = 4           # LM iterations bounding each fold's fits
     fold_tol: float = 1e-5             # relative cost change that ends a fold fit (about 0.1 nat on these logs)
     heldout_gate: float = 0.0          # candidates with delta BIC below this get held-out folds
-    settle_iterations: int = 8         # continuous logs: LM iterations re-settling the model before its residuals
-    settle_rounds: int = 2             # continuous logs: noise step and LM rounds settling each candidate and the base
-    decide_rounds: int = 0             # continuous logs: when above settle_rounds, re-settle the base and the leaders
-    #                                    (supported candidates with at least ``lookalike_gain`` of the best's delta BIC)
-    #                                    for at most this many rounds, until the log-likelihood moves by less than a nat,
-    #                                    before the verdict. Off by default: it names the independent world's strong
-    #                                    latencies (continuous seeds 7, 9, 10: 40 rounds, the latency ahead by 138-1,100;
-    #                                    with two the lag by 53-950), but a two-minute lag world then goes to the latency
-    #                                    (-24,878 against -24,663), the lag's delay held at its two-round profile
     command_change: float = COMMAND_CHANGE   # continuous logs: a command jump of this share of its range starts an "action"
     lag_order_support: float = -10.0   # continuous logs: a one-stage lag this supported is profiled with two too
     confirm_members: bool = True       # continuous logs: a leading family's members within ``lookalike_gain`` of its
@@ -121,7 +121,12 @@ class DiagnoseOptions:
     def to_json(self) -> dict:
         return asdict(self)
 
+    def leaders_settle(self, kind: str) -> int:
+        """The leaders' rounds in all on a log of action model ``kind``: ``leader_rounds``, or the kind's own."""
+        return self.leader_rounds if self.leader_rounds is not None else LEADER_ROUNDS.get(kind, 0)
 
+
+LEADER_ROUNDS = {"table": 3, "command_poly": 0}     # each kind's leaders' rounds when the options leave them open
 DEFAULTS = DiagnoseOptions()
 BIC_SUPPORT = DEFAULTS.bic_support     # the default evidence a verdict needs, for scripts that count supported candidates
 

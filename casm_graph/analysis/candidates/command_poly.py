@@ -162,8 +162,8 @@ def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, ef
 class CommandBench(Bench):
     """The candidates of a continuous-command log, settled on the coarse graph against one base settled alike.
 
-    Each candidate is settled in ``options.settle_rounds`` rounds (a latency's velocity window follows its delay
-    from one to the next). With ``options.decide_rounds`` above that (off by default), the leaders (the candidates
+    Each candidate is settled in ``options.candidate_rounds`` rounds (a latency's velocity window follows its delay
+    from one to the next). With the leaders' rounds above that (off by default), the leaders (the candidates
     a verdict or a look-alike group could name) and the base are then settled until their log-likelihoods stop
     moving: an effect whose optimum lies away from the base's poses needs more rounds to reach it than one whose
     optimum is near. The base, the profiles and the hooked effects settle side by side on ``workers`` processes or
@@ -188,7 +188,7 @@ class CommandBench(Bench):
         lay = CT.layout(log, graph.full_knot_dt)
         use = CT.gate(log, poses[log.obs_step], model, effects=own)
         problem = Problem(log, model, own, lay=lay, gate=use, poses=poses[lay.knots])
-        st, _ = least_squares(problem, problem.state(poses[lay.knots], model), max_iterations=o.settle_iterations)
+        st, _ = least_squares(problem, problem.state(poses[lay.knots], model), max_iterations=o.candidate_iterations)
         self.model = model = problem.with_state(model, st)
         full = CT.fill_in(log, model, lay.knots, st.poses)
         self.fit = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
@@ -198,7 +198,7 @@ class CommandBench(Bench):
         self.cuse = CT.gate(log, full[log.obs_step], model, effects=own)
         self.start = full[self.coarse.knots]
         self.n = CT.residual_rows(log, self.coarse, self.cuse)
-        self.rounds, self.ll0 = o.settle_rounds, None
+        self.rounds, self.ll0 = o.candidate_rounds, None
 
     @cached_property
     def leverage(self) -> np.ndarray | None:
@@ -241,9 +241,9 @@ class CommandBench(Bench):
             progress.stage("candidates", 1 + len(todo) + len(hooked), unit="fits")
         settles = {}              # candidate -> how to settle it again, for the leaders' decision
         if todo or hooked:        # every candidate scored against one base, settled as they are, side by side
-            done = parallel([self.settle_base(o.settle_rounds)]
-                            + [self.profile_task(name, o.settle_rounds) for name in todo]
-                            + [self.settle_hooked(o.settle_rounds, e) for e in fitted],
+            done = parallel([self.settle_base(o.candidate_rounds)]
+                            + [self.profile_task(name, o.candidate_rounds) for name in todo]
+                            + [self.settle_hooked(o.candidate_rounds, e) for e in fitted],
                             self.workers, progress, self.client)
             self.ll0, self.coarse_base, self.base_prediction = done[0]
             profiled, settled_fits = done[1:1 + len(todo)], iter(done[1 + len(todo):])
@@ -332,16 +332,17 @@ class CommandBench(Bench):
         return np.divide(with_c, without, out=np.ones_like(with_c), where=without > 0)
 
     def decide(self, cands: list[Candidate], settles: dict) -> None:
-        """With ``options.decide_rounds`` above the settle rounds, the leaders and the base settled again for up
-        to that many rounds and re-scored (``cands`` re-sorted in place)."""
+        """With the leaders' rounds (``options.leaders_settle``) above the candidates', the leaders and the base
+        settled again for up to that many rounds and re-scored (``cands`` re-sorted in place)."""
         o, n = self.options, self.n
+        rounds = o.leaders_settle(self.kind)
         leaders = [c for c in leading(cands, o) if id(c) in settles]
-        if len(leaders) <= 1 or o.decide_rounds <= o.settle_rounds:
+        if len(leaders) <= 1 or rounds <= o.candidate_rounds:
             return
-        self.rounds = o.decide_rounds
+        self.rounds = rounds
         if self.progress is not None:
             self.progress.stage("settling the leaders", len(leaders) + 1, unit="fits")
-        done = parallel([self.settle_base(o.decide_rounds)] + [settles[id(c)][0](o.decide_rounds) for c in leaders],
+        done = parallel([self.settle_base(rounds)] + [settles[id(c)][0](rounds) for c in leaders],
                         self.workers, self.progress, self.client)
         self.ll0, _, self.base_prediction = done[0]
         for c, (ll, m, prediction) in zip(leaders, done[1:]):

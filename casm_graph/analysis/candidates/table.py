@@ -233,12 +233,13 @@ class TableBench(Bench):
 
     def settle_leaders(self, fitted: list, members: list) -> None:
         """When two or more fitted candidates lead (delta BIC at most ``bic_support`` and at least ``lookalike_gain``
-        of the best's), they and the base go on from their fits to ``options.leader_rounds`` rounds in all and the
-        leaders are scored against that base (``fitted`` updated in place; the base, and what the proposal is scored
-        against, becomes it). An effect whose optimum lies away from the base's poses (a camera latency: the poses
+        of the best's), they and the base go on from their fits to the leaders' rounds in all
+        (``options.leaders_settle``) and the leaders are scored against that base (``fitted`` updated in place; the
+        base, and what the proposal is scored against, becomes it). An effect whose optimum lies away from the base's poses (a camera latency: the poses
         must move back) needs more rounds to reach it than a look-alike whose optimum is near (an actuator lag)."""
         o = self.options
-        if o.leader_rounds <= o.candidate_rounds:
+        rounds = o.leaders_settle(self.kind)
+        if rounds <= o.candidate_rounds:
             return
         lead = leading([c for c, m, _ in fitted if m is not None], o)      # the fitted ones (screened have no fit)
         leaders = [i for i, (c, _, _) in enumerate(fitted) if any(c is d for d in lead)]
@@ -246,8 +247,8 @@ class TableBench(Bench):
             return
         if self.progress is not None:
             self.progress.stage("settling the leaders", len(leaders) + 1, unit="fits")
-        more = replace(o, candidate_rounds=o.leader_rounds - o.candidate_rounds)
-        self.options = replace(o, candidate_rounds=o.leader_rounds)      # a proposal, fitted from the start
+        more = replace(o, candidate_rounds=rounds - o.candidate_rounds)
+        self.options = replace(o, candidate_rounds=rounds)      # a proposal, fitted from the start
         *again, self.base = parallel(
             [(fit_member, (self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:]))
              for i in leaders]
