@@ -48,3 +48,10 @@ def prune(log: Log, mask: np.ndarray) -> Log:
     """``log`` with the masked sightings marked not measured (kept in place, so indices still match)."""
     return replace(log, obs_reading=np.where(mask, np.nan, log.obs_reading),
                    obs_bearing=np.where(mask, np.nan, log.obs_bearing))
+
+
+def set_aside(log: Log, model: Model, poses: np.ndarray) -> tuple[Log, np.ndarray]:
+    """``log`` with its gross outliers at ``model`` and ``poses`` (:func:`outlying`) marked not measured, and the
+    mask of them: what every method does before a fit whose likelihood is Gaussian."""
+    mask = outlying(log, model, poses)
+    return prune(log, mask), mask

@@ -23,7 +23,7 @@ import numpy as np
 
 from casm_graph.fit.initialise import initialise
 from casm_graph.fit.methods.base import Fit, Progress, register
-from casm_graph.fit.outliers import outlying, prune
+from casm_graph.fit.outliers import set_aside
 from casm_graph.fit.residuals import distances, observation
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
@@ -203,8 +203,7 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
     model, poses, cost, stages, iterations = co.model, co.poses, co.cost, co.stages, co.iterations
     realiased, init = co.realiased, co.init
     unpruned = log
-    pruned = outlying(log, model, poses)
-    log = prune(log, pruned)
+    log, pruned = set_aside(log, model, poses)
 
     full = G.layout(log, model, stride=1)
     asked = len(model.reading_poly) - 1
@@ -228,8 +227,7 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
         if better is None:
             break
         model = model.with_(reading_poly=better[0], reading_basis=better[1])   # the data demand another curve:
-        pruned = outlying(unpruned, model, poses)                              # its outliers, the full graph again
-        log = prune(unpruned, pruned)
+        log, pruned = set_aside(unpruned, model, poses)                        # its outliers, the full graph again
         progress.stage(f"full graph, sensor degree {len(better[0]) - 1}"
                        + (" in 1/d" if better[1] == "inverse_distance" else ""), o.full_rounds)
     converged = h.converged

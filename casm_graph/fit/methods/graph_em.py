@@ -19,7 +19,7 @@ import numpy as np
 from casm_graph.fit.methods.base import Fit, Progress, register
 from casm_graph.fit.methods.graph import GraphOptions
 from casm_graph.fit.methods.kinds import kind
-from casm_graph.fit.outliers import outlying, prune
+from casm_graph.fit.outliers import set_aside
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import chain, robust
 from casm_graph.graph import table as G
@@ -202,8 +202,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     t0 = time.perf_counter()
     co = kind(start.action.kind).coarse(log, start, seed, progress, options=options)
     model, poses = co.model, co.poses
-    pruned = outlying(log, model, poses)          # gross outliers out, as graph prunes them: the M-step is Gaussian
-    log = prune(log, pruned)
+    log, pruned = set_aside(log, model, poses)    # gross outliers out, as graph prunes them: the M-step is Gaussian
     history = {"log_likelihood": [], "velocity_rms": [], "seconds": [], "squarem": []}
     progress.stage("graph-em", max_iterations)
     tv = None
