@@ -40,7 +40,7 @@ def ours(log, m, sig):
     use = np.ones(len(zr), bool)
     mu0, P0 = log.truth[0, 1:].copy(), np.diag([0.01, 0.01, 0.01])
     t = time.perf_counter()
-    step_sig = ekfs.step_sigmas(sig, log.dt)
+    step_sig = ekfs.step_sigmas(sig, log)
     mu_a, P_a, ll, _ = ekfs.forward(mu0, P0, u, step_sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)
     Lb, eb, Ld, ed = ekfs.backward(mu_a, u, step_sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)
     mu_g, _ = ekfs.smooth(mu_a, P_a, Lb, eb)

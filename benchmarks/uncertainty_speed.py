@@ -63,7 +63,8 @@ def main() -> None:
 
         def ekf(x):
             sr, sb, mot, _ = ml._split(x)
-            return ekfs.forward(st.poses[0], np.diag([1e-2] * 3), u, ekfs.step_sigmas(mot, log.dt), ptr, lm, z_r, z_b, st.poly, sr, sb, use)[2]
+            return ekfs.forward(st.poses[0], np.diag([1e-2] * 3), u, ekfs.step_sigmas(mot, log), ptr, lm, z_r, z_b,
+                                st.poly, sr, sb, use)[2]
 
         x = ml.x_map
         t_ekf, t_pose, t_all = (median_ms(f, x, args.repeat) for f in (ekf, ml0, ml))

@@ -78,7 +78,7 @@ def test_ekfs_smoother_with_the_true_model(true_case):
     order, ptr, lm, zr, zb = _observations(log)
     act = np.searchsorted(m.action_ids, log.action)
     u = m.velocities[act] * log.dt[:, None]
-    sig = ekfs.step_sigmas(m.motion_noise, log.dt)              # the simulator's true motion noise
+    sig = ekfs.step_sigmas(m.motion_noise, log)              # the simulator's true motion noise
     use = np.ones(len(zr), bool)
     mu0, P0 = log.truth[0, 1:].copy(), np.diag([0.01, 0.01, 0.01])
     mu_a, P_a, ll, _ = ekfs.forward(mu0, P0, u, sig, ptr, lm, zr, zb, m.reading_poly, 1.0, 0.5, use)

@@ -102,7 +102,8 @@ def test_laplace_agrees_with_the_ekf_likelihood(small):
 
     def ekf(x):
         sr, sb, mot, _ = ml0._split(x)
-        return ekfs.forward(st.poses[0], np.diag([1e-2] * 3), u, ekfs.step_sigmas(mot, log.dt), ptr, lm, z_r, z_b, st.poly, sr, sb, use)[2]
+        return ekfs.forward(st.poses[0], np.diag([1e-2] * 3), u, ekfs.step_sigmas(mot, log), ptr, lm, z_r, z_b,
+                            st.poly, sr, sb, use)[2]
 
     f = np.exp(np.linspace(-0.3, 0.3, 7))
     for i, name in enumerate(ml0.names):

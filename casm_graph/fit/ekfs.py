@@ -15,12 +15,10 @@ import numpy as np
 from numba import njit
 
 
-def step_sigmas(sigma, dt: np.ndarray) -> np.ndarray:
-    """(T, 3) process-noise std of each step: ``sigma`` per step of the median length, grown with the step's time
-    (a random walk, as the graph's motion factors say), so a one-second gap in a real robot's odometry counts as
-    the hundred steps it spans."""
-    dt = np.asarray(dt, float)
-    return np.asarray(sigma, float)[None, :] * np.sqrt(dt / np.median(dt))[:, None]
+def step_sigmas(sigma, log) -> np.ndarray:
+    """(T, 3) process-noise std of each step of ``log``: ``sigma`` per step of the median length, grown with the
+    step's time as the graph's motion factors grow it (:meth:`casm_graph.io.log.Log.in_median_steps`)."""
+    return np.asarray(sigma, float)[None, :] * np.sqrt(log.in_median_steps(log.dt))[:, None]
 
 
 @njit(cache=True)

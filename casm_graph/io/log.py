@@ -66,6 +66,11 @@ class Log:
         d = np.diff(self.t)
         return _frozen(np.append(d, np.median(d)))
 
+    def in_median_steps(self, seconds) -> np.ndarray:
+        """``seconds`` counted in steps of the log's median length: what a motion-noise level per step scales by
+        (a random walk), so a one-second gap in a real robot's odometry counts as the hundred steps it spans."""
+        return np.asarray(seconds, float) / float(np.median(self.dt))
+
     @cached_property
     def pose_times(self) -> np.ndarray:
         return _frozen(np.append(self.t, self.t[-1] + self.dt[-1]))

@@ -235,8 +235,9 @@ class TableBench(Bench):
         """When two or more fitted candidates lead (delta BIC at most ``bic_support`` and at least ``lookalike_gain``
         of the best's), they and the base go on from their fits to the leaders' rounds in all
         (``options.leaders_settle``) and the leaders are scored against that base (``fitted`` updated in place; the
-        base, and what the proposal is scored against, becomes it). An effect whose optimum lies away from the base's poses (a camera latency: the poses
-        must move back) needs more rounds to reach it than a look-alike whose optimum is near (an actuator lag)."""
+        base, and what the proposal is scored against, becomes it). An effect whose optimum lies away from the
+        base's poses (a camera latency: the poses must move back) needs more rounds to reach it than a look-alike
+        whose optimum is near (an actuator lag)."""
         o = self.options
         rounds = o.leaders_settle(self.kind)
         if rounds <= o.candidate_rounds:

@@ -85,7 +85,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
     co = kind(start.action.kind).coarse(log, start, seed, progress)
-    log, gross = set_aside(log, co.model, co.poses)       # the sightings graph-em sets aside, before the filters see them
+    log, gross = set_aside(log, co.model, co.poses)       # graph-em's gross outliers, before the filters see them
     from_initialiser = from_initialiser or not start.action.zero_start
     order, ptr, lm, z_r, z_b = _observations(log)
     dt = log.dt
@@ -113,7 +113,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     progress.stage("ekfs-em", max_iterations)
     for it in range(max_iterations):
         u = model.step_velocities(log) * dt[:, None]
-        step_sig = ekfs.step_sigmas(sig, dt)
+        step_sig = ekfs.step_sigmas(sig, log)
         mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, step_sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         if it == 0:
             use = ~(m2 > outlier_m2)
@@ -144,7 +144,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         if learn_action_noise:
             resid = d - model.step_velocities(log) * dt[:, None]
             resid[:, 2] = wrap(resid[:, 2])
-            em = np.sqrt(np.mean((resid ** 2 + d_var) * (np.median(dt) / dt)[:, None], axis=0))   # per median step
+            em = np.sqrt(np.mean((resid ** 2 + d_var) / log.in_median_steps(dt)[:, None], axis=0))   # per median step
             sig = np.maximum(sig * (em / sig) ** overrelax, MIN_ACTION_SIGMA)
 
         k = log.obs_step[order]
@@ -172,7 +172,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": name, "iterations": it + 1, "best_iteration": best_it + 1,
                              "seconds": round(time.perf_counter() - t0, 3), "log_likelihood": float(ll),
-                             "converged": bool(it - best_it >= patience), "outliers_pruned": int(gross.sum() + (~use).sum()),
+                             "converged": bool(it - best_it >= patience),
+                             "outliers_pruned": int(gross.sum() + (~use).sum()),
                              "ekfs": {"max_iterations": max_iterations, "patience": patience,
                                       "outlier_m2": outlier_m2, "learn_action_noise": learn_action_noise,
                                       "from_initialiser": from_initialiser, "overrelax": overrelax}})

@@ -103,8 +103,8 @@ def m_step(log: Log, model: Model, poses, W, X) -> Model:
     new = model.fitted_to_steps(log, Ed)
     res = Ed - new.step_velocities(log) * log.dt[:, None]
     rules = ACTIONS[model.action.kind].rules(model)          # what graph's noise step assumes of this robot
-    per_step = np.median(log.dt) / log.dt[:, None]             # the levels are per step of the median length
-    motion = rules.apply(np.sqrt(np.mean((res ** 2 + np.diagonal(Cd, axis1=1, axis2=2)) * per_step, axis=0)))
+    steps = log.in_median_steps(log.dt)[:, None]                # the levels are per step of the median length
+    motion = rules.apply(np.sqrt(np.mean((res ** 2 + np.diagonal(Cd, axis1=1, axis2=2)) / steps, axis=0)))
     efficiency = robust.HUBER_EFFICIENCY if rules.huber_efficiency else 1.0
 
     lm = log.landmark_xy[log.landmark_index]

@@ -135,8 +135,8 @@ class CommandPoly(ActionPart):
 
     def motion_sigma(self, model: Model, poses: np.ndarray | None) -> np.ndarray:
         lay, log = self.lay, self.log
-        ref = float(np.median(log.dt))
-        sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(np.maximum(lay.seg_time, 1e-9) / ref)[:, None]
+        steps = log.in_median_steps(np.maximum(lay.seg_time, 1e-9))
+        sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(steps)[:, None]
         if RMN.RegionalMotionNoise.name in model.effects:
             if poses is None:
                 raise ValueError("regional_motion_noise: the problem needs the knot poses to place its segments")

@@ -51,8 +51,8 @@ class TableActions(ActionPart):
     def motion_sigma(self, model: Model, poses=None) -> np.ndarray:
         """The levels per step of the log's median length, grown with the segment's time (a random walk): a log
         whose steps vary in length (a real robot's odometry with gaps) trusts a one-second step less."""
-        seconds = self.lay.seg_steps * self.lay.seg_dt / float(np.median(self.log.dt))
-        return np.asarray(model.motion_noise, float)[None, :] * np.sqrt(seconds)[:, None]
+        steps = self.log.in_median_steps(self.lay.seg_steps * self.lay.seg_dt)
+        return np.asarray(model.motion_noise, float)[None, :] * np.sqrt(steps)[:, None]
 
     def _fn(self, theta):
         return motion_function(self.motion_effects, self.m_ctx, theta)
