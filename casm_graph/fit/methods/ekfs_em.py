@@ -188,7 +188,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
                              "outliers_pruned": int(gross.sum() + (~use).sum()),
                              "ekfs": {"max_iterations": max_iterations, "patience": patience,
                                       "outlier_m2": outlier_m2, "learn_action_noise": learn_action_noise,
-                                      "from_initialiser": from_initialiser, "overrelax": overrelax}})
+                                      "from_initialiser": from_initialiser, "overrelax": overrelax,
+                                      "sigma_a_step": None if learn_action_noise else PAPER_STEP}})
     ll_hist = history["log_likelihood"]
     return Fit(model=model, poses=mu_g, pose_std=pose_std, cost=[-x for x in ll_hist],
                stages=["ekfs-em"] * len(ll_hist), iterations=it + 1, converged=model.fit["converged"],
