@@ -58,9 +58,9 @@ def addable(effect: str | None, log) -> bool:
 
 
 def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3,
-          sensor_basis: str = "auto") -> dict:
+          sensor_basis: str = "auto", options: cg.DiagnoseOptions | None = None) -> dict:
     """One world (sightings no closer than ``min_range``): calibrate (the sensor curve in ``sensor_basis``),
-    diagnose, add the named (or hidden) effect, diagnose again."""
+    diagnose (as ``options`` say), add the named (or hidden) effect, diagnose again."""
     t0 = time.perf_counter()
     if kind == "omni":
         truth = omni_world.generate(workdir / "log", minutes=minutes, seed=seed, effect=effect)
@@ -71,18 +71,19 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         base = cg.calibrate(log, seed=seed, sensor_basis=sensor_basis)
-        d1 = cg.diagnose(log, base)
+        options = options or cg.DiagnoseOptions()
+        d1 = cg.diagnose(log, base, options=options)
         add = d1.to_add() if d1.verdict in CATALOG else (effect if addable(effect, log) else None)
         row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "sensor_basis": sensor_basis,
                "basis": base.model.reading_basis, "strength": truth.get("strength"),
-               "seed": seed, "minutes": minutes, "verdict": d1.verdict,
+               "seed": seed, "minutes": minutes, "long_run_seconds": options.long_run_seconds, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],
                "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
                                "order": c.order} for c in d1.candidates[:4]],
                "error_before": position_rms(base, log), "added": add}
         if add is not None:
             fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis)
-            d2 = cg.diagnose(log, fixed, before=d1)
+            d2 = cg.diagnose(log, fixed, before=d1, options=options)
             row.update(verdict_after=d2.verdict, error_after=position_rms(fixed, log),
                        predictive=d2.before_after.get("predictive") if d2.before_after else None)
     row["seconds"] = round(time.perf_counter() - t0, 1)
@@ -127,6 +128,8 @@ def main():
     ap.add_argument("--out", default="independent_world.jsonl")
     ap.add_argument("--min-range", type=float, default=0.3, help="closest sighting in the world, m")
     ap.add_argument("--sensor-basis", default="auto", choices=("auto", "distance", "inverse_distance"))
+    ap.add_argument("--long-run-seconds", type=float, default=cg.DiagnoseOptions.long_run_seconds,
+                    help="DiagnoseOptions.long_run_seconds: the motion residuals' long-run variance over this lag")
     ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     if args.table:
@@ -139,7 +142,8 @@ def main():
                 for seed in args.seeds:
                     with tempfile.TemporaryDirectory() as w:
                         row = trial(kind, None if effect == "none" else effect, seed, args.minutes, Path(w),
-                                    args.min_range, args.sensor_basis)
+                                    args.min_range, args.sensor_basis,
+                                    cg.DiagnoseOptions(long_run_seconds=args.long_run_seconds))
                     rows.append(row)
                     f.write(json.dumps(row, default=float) + "\n")
                     f.flush()

@@ -99,6 +99,30 @@ def test_autocorrelated_noise_does_not_fake_structure():
     assert D.structures(rep) == []
 
 
+def test_slip_that_persists_for_seconds_is_not_structure_with_the_long_run_variance():
+    """Slip that wanders over tens of seconds under white noise has a small lag-one correlation (0.10 here), so the
+    AR(1) inflation leaves the motion residuals' drift against time p 6e-30; the long-run variance of their
+    deviations from the time bins' means discounts it (``long_run_seconds``), and a real trend keeps its p."""
+    rng = np.random.default_rng(5)
+    n, a = 6000, 0.99
+    t = np.arange(n) * 0.1
+    slow = np.zeros(n)
+    e = rng.normal(size=n) * 0.4 * np.sqrt(1 - a * a)
+    for i in range(1, n):
+        slow[i] = a * slow[i - 1] + e[i]
+    wander = rng.normal(size=n) + slow
+    trend = rng.normal(size=n) + 0.5 * t / t[-1]
+    long_run = D.DiagnoseOptions(long_run_seconds=10.0)
+
+    def report(r, o):
+        return D.channel_report({"forward": Channel("forward", r, r, t, {"time": t})}, o)
+
+    assert D.structures(report(wander, D.DEFAULTS), D.DEFAULTS)
+    assert not D.structures(report(wander, long_run), long_run)
+    plain, deflated = (report(trend, o)["forward"]["covariates"][0] for o in (D.DEFAULTS, long_run))
+    assert D.structures(report(trend, long_run), long_run) and deflated["p"] == pytest.approx(plain["p"], rel=0.5)
+
+
 def test_a_controller_answering_the_noise_is_feedback_not_structure():
     """Closed loop: the command corrects the heading error the slip (an OU process) built up, so the turn residual
     (the slip) depends on the commanded turn rate, and more on its later values: feedback, not a model error. Open

@@ -116,6 +116,11 @@ class DiagnoseOptions:
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
     #                                    this lead) more than its own is the controller correcting the noise, not
     #                                    structure of the model (0: no such test)
+    long_run_seconds: float = 0.0      # s: > 0 deflates a motion channel's test against each covariate by the long-run
+    #                                    variance of its residuals' deviations from their groups' means (Bartlett's
+    #                                    weights over lags up to this time), where it exceeds the lag-one (AR(1))
+    #                                    inflation: slip that persists for seconds leaves smoothing residuals whose
+    #                                    means drift more than a lag-one correlation says (0: the AR(1) inflation alone)
     proposal: ProposalOptions = field(default_factory=ProposalOptions)   # the equation search of an unexplained verdict
 
     def to_json(self) -> dict:
@@ -138,6 +143,22 @@ def _inflation(r_time_ordered: np.ndarray) -> float:
     rho = float(np.sum(r[1:] * r[:-1]) / max(np.sum(r * r), 1e-300))
     rho = min(max(rho, 0.0), 0.95)
     return (1 + rho) / (1 - rho)
+
+
+def long_run_inflation(r: np.ndarray, g: np.ndarray, lags: int) -> float:
+    """Long-run variance over variance of residuals ``r`` (time order) less their groups' (``g``, -1: none) means:
+    1 + 2 sum over lags k up to ``lags`` of (1 - k / (lags + 1)) rho_k (Bartlett's weights, as Newey and West).
+    Within-group deviations keep the structure under test out of the correlation that discounts it."""
+    keep = g >= 0
+    e = np.zeros(len(r))
+    labels, inv = np.unique(g[keep], return_inverse=True)
+    means = np.bincount(inv, weights=r[keep]) / np.bincount(inv)
+    e[keep] = r[keep] - means[inv]
+    v = float(np.sum(e * e))
+    if v <= 0 or lags < 1:
+        return 1.0
+    rho = [float(np.sum(e[k:] * e[:-k])) / v for k in range(1, min(lags, len(e) - 1) + 1)]
+    return max(1.0, 1.0 + 2.0 * sum((1.0 - (k + 1) / (lags + 1)) * c for k, c in enumerate(rho)))
 
 
 def _groups(x: np.ndarray, categorical: bool, options: DiagnoseOptions = DEFAULTS) -> np.ndarray:
@@ -222,6 +243,8 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
     motion = ch.name in MOTION_CHANNELS
     r_t, t_t = r[order], ch.time[order]                  # in time order: the series tests
     infl = _inflation(r_t)
+    step = float(np.median(np.diff(t_t))) if len(t_t) > 1 else 0.0
+    lags = int(round(options.long_run_seconds / step)) if motion and options.long_run_seconds > 0 and step > 0 else 0
     rs = standardised(r, ch.leverage)
     dev = np.abs(rs - np.median(rs))
     infl_dev = _inflation(dev[order])
@@ -232,9 +255,15 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
             continue
         cat = name in CATEGORICAL
         g = _groups(x[ok], cat, options)
-        s_mean, p_mean = anova(r[ok], g, infl)
+        if lags:
+            g_all = np.full(len(r), -1)
+            g_all[ok] = g
+            c_infl = max(infl, long_run_inflation(r_t, g_all[order], lags))
+        else:
+            c_infl = infl
+        s_mean, p_mean = anova(r[ok], g, c_infl)
         if motion:
-            lead, when = feedback_strength(r_t, x[order], t_t, infl, options) if name in COMMANDED and (
+            lead, when = feedback_strength(r_t, x[order], t_t, c_infl, options) if name in COMMANDED and (
                 p_mean < options.structure_p or s_mean >= options.structure_omega2) else (0.0, 0.0)
             out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"} if lead <= s_mean else
                        {"name": name, "strength": s_mean, "p": p_mean, "kind": "feedback",
