@@ -699,8 +699,9 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
 
 def curve_with_effects(log: Log, out: Fit, alt: Fit, hooked, warm: dict, seed: int, progress: Progress,
                        marginals: bool, options: CommandGraphOptions) -> Fit:
-    """The sensor curve chosen again with the hooked effects fitted: ``out`` (``hooked`` fitted on the curve the fit
-    without them chose) against them fitted on ``alt``, the curve it passed over. Without a false-detection
+    """The sensor curve chosen again with the hooked effects fitted (when one acts on the sightings): ``out``
+    (``hooked`` fitted on the curve the fit without them chose) against them fitted on ``alt``, the curve it passed
+    over. Without a false-detection
     mixture the wild readings' near-range misfit favours a steep 1/d curve that the mixture no longer needs (an
     independent floor: 0.023 m from the truth in 1/d, 0.010 m in d, 4,400 nats apart)."""
     other = fit_hooked(log, replace(alt, model=alt.model.with_(effects={**alt.model.effects, **warm})), hooked,
@@ -760,7 +761,7 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         alt = out.notes.pop("other_curve", None)
         out = fit_hooked(log, replace(out, model=out.model.with_(effects={**out.model.effects, **warm})), hooked,
                          seed=seed, progress=progress, marginals=marginals, options=options)
-        if alt is not None:
+        if alt is not None and any(e.channel == "sensor" for e in augmented.instantiate(hooked, log)):
             out = curve_with_effects(log, out, alt, hooked, warm, seed, progress, marginals, options)
     out.notes["profiles"] = profiles
     return out
