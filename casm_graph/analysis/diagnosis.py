@@ -120,7 +120,10 @@ class DiagnoseOptions:
     #                                    variance of its residuals' deviations from their groups' means (Bartlett's
     #                                    weights over lags up to this time), where it exceeds the lag-one (AR(1))
     #                                    inflation: slip that persists for seconds leaves smoothing residuals whose
-    #                                    means drift more than a lag-one correlation says (0: the AR(1) inflation alone)
+    #                                    means drift more than a lag-one correlation says (0: the AR(1) inflation alone).
+    #                                    Off: at 6 s on the omni world's six-minute logs a lag, once added, leaves none
+    #                                    on 5 of 6 (3 without), but two carpets are named false_detections and
+    #                                    battery_fade (surface_friction without)
     proposal: ProposalOptions = field(default_factory=ProposalOptions)   # the equation search of an unexplained verdict
 
     def to_json(self) -> dict:
