@@ -154,7 +154,7 @@ def long_run_inflation(r: np.ndarray, g: np.ndarray, lags: int) -> float:
     Within-group deviations keep the structure under test out of the correlation that discounts it."""
     keep = g >= 0
     e = np.zeros(len(r))
-    labels, inv = np.unique(g[keep], return_inverse=True)
+    _, inv = np.unique(g[keep], return_inverse=True)
     means = np.bincount(inv, weights=r[keep]) / np.bincount(inv)
     e[keep] = r[keep] - means[inv]
     v = float(np.sum(e * e))

@@ -701,9 +701,8 @@ def curve_with_effects(log: Log, out: Fit, alt: Fit, hooked, warm: dict, seed: i
                        marginals: bool, options: CommandGraphOptions) -> Fit:
     """The sensor curve chosen again with the hooked effects fitted (when one acts on the sightings): ``out``
     (``hooked`` fitted on the curve the fit without them chose) against them fitted on ``alt``, the curve it passed
-    over. Without a false-detection
-    mixture the wild readings' near-range misfit favours a steep 1/d curve that the mixture no longer needs (an
-    independent floor: 0.023 m from the truth in 1/d, 0.010 m in d, 4,400 nats apart)."""
+    over. Without a false-detection mixture the wild readings' near-range misfit favours a steep 1/d curve that the
+    mixture no longer needs (an independent floor: 0.023 m from the truth in 1/d, 0.010 m in d, 4,400 nats apart)."""
     other = fit_hooked(log, replace(alt, model=alt.model.with_(effects={**alt.model.effects, **warm})), hooked,
                        seed=seed, progress=progress, marginals=marginals, options=options)
     first, other = (out, other) if out.model.reading_basis == "distance" else (other, out)
