@@ -321,18 +321,27 @@ def fit(log: Log, start: Model | None = None, seed: int = 0, progress: Progress 
     rounds, finer graph (as ``options`` say), marginals. ``max_sensor_degree``: the sensor polynomial's degree may
     rise to it when the data demand; ``free_basis``: when the fit in d shows a near-range misfit, a fit with the
     curve in 1/d competes (:mod:`casm_graph.fit.sensor_degree`, as on action tables)."""
+    return fit_both_curves(log, start, seed, progress, marginals, start_options, options, max_sensor_degree,
+                           free_basis)[0]
+
+
+def fit_both_curves(log: Log, start: Model | None = None, seed: int = 0, progress: Progress | None = None,
+                    marginals: bool = True, start_options: W.WindowOptions | None = None,
+                    options: CommandGraphOptions = DEFAULTS, max_sensor_degree: int = 0,
+                    free_basis: bool = False) -> tuple[Fit, Fit | None]:
+    """:func:`fit`, and the fit with the curve it passed over (None when one curve was fitted): effects on the
+    sightings fitted later choose between the two again (:func:`curve_with_effects`)."""
     progress = progress or Progress()
     start = start or start_model(log)
     first = _fit(log, start, seed, progress, marginals, start_options, options, max_sensor_degree)
     if not (free_basis and start.reading_basis == "distance" and suspect(first.model, log, options.sensor_curve)):
-        return first
+        return first, None
     progress.stage("the sensor curve in 1/d", None)
     other = in_basis(log, first, "inverse_distance", len(start.reading_poly) - 1, seed, progress, marginals, options,
                      max_sensor_degree)
     keep = better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)),
                         options.sensor_curve)
-    keep.notes["other_curve"] = other if keep is first else first   # hooked effects re-choose with them fitted
-    return keep
+    return keep, (other if keep is first else first)
 
 
 def curve_in(log: Log, model: Model, poses: np.ndarray, basis: str, degree: int,
@@ -699,14 +708,17 @@ def fit_hooked(log: Log, base: Fit, effects, seed: int = 0, progress: Progress |
 
 def curve_with_effects(log: Log, out: Fit, alt: Fit, hooked, warm: dict, seed: int, progress: Progress,
                        marginals: bool, options: CommandGraphOptions) -> Fit:
-    """The sensor curve chosen again with the hooked effects fitted (when one acts on the sightings): ``out``
-    (``hooked`` fitted on the curve the fit without them chose) against them fitted on ``alt``, the curve it passed
-    over. Without a false-detection mixture the wild readings' near-range misfit favours a steep 1/d curve that the
-    mixture no longer needs (an independent floor: 0.023 m from the truth in 1/d, 0.010 m in d, 4,400 nats apart)."""
+    """The sensor curve chosen again with the hooked effects fitted (when one acts on the sightings, else ``out``):
+    ``out`` (``hooked`` fitted on the curve the fit without them chose) against them fitted on ``alt``, the curve it
+    passed over. Without a false-detection mixture the wild readings' near-range misfit favours a steep 1/d curve
+    that the mixture no longer needs (an independent floor: 0.023 m from the truth in 1/d, 0.010 m in d, 4,400 nats
+    apart)."""
+    effects = augmented.instantiate(hooked, log)
+    if not any(e.channel == "sensor" for e in effects):
+        return out
     other = fit_hooked(log, replace(alt, model=alt.model.with_(effects={**alt.model.effects, **warm})), hooked,
                        seed=seed, progress=progress, marginals=marginals, options=options)
     first, other = (out, other) if out.model.reading_basis == "distance" else (other, out)
-    effects = augmented.instantiate(hooked, log)
     scores = tuple(sighting_log_likelihood(log, f, effects) for f in (first, other))
     return better_curve(log, first, other, scores, options.sensor_curve)
 
@@ -732,9 +744,10 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
     noisy = [n for n in named if n in NOISE_EFFECTS]
     hooked = [e for e, n in zip(effects, named) if n not in EFFECTS and n not in NOISE_EFFECTS]
     curve = {"max_sensor_degree": max_sensor_degree, "free_basis": free_basis}   # chosen as the base's, in every fit
+    alt = None               # the fit with the curve the latest one passed over, if it compared two
     if base is None:
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not effects, options=options,
-                  **curve)
+        out, alt = fit_both_curves(log, start, seed=seed, progress=progress, marginals=marginals and not effects,
+                                   options=options, **curve)
     else:                    # settled on the full graph first: a profile reads the poses it starts from
         out = fit_hooked(log, base, [], seed=seed, progress=progress, marginals=False, options=options)
     warm = {}
@@ -747,20 +760,19 @@ def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_la
         prof = profile(log, out, name, options=options.profile, knot_dt=options.coarse_knot_dt)
         profiles.append(prof)
         start = with_effect(start, name, prof.value, prof.order)
-        out = fit(log, start, seed=seed, progress=progress,
-                  marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked, options=options,
-                  **curve)
+        out, alt = fit_both_curves(log, start, seed=seed, progress=progress,
+                                   marginals=marginals and i == len(profiled) - 1 and not noisy and not hooked,
+                                   options=options, **curve)
     if noisy:
         before = out.log_likelihood
         start = with_regional_noise(start, log, regions or RMN.Regions.around_landmarks(log), out.model)
-        out = fit(log, start, seed=seed, progress=progress, marginals=marginals and not hooked, options=options,
-                  **curve)
+        out, alt = fit_both_curves(log, start, seed=seed, progress=progress, marginals=marginals and not hooked,
+                                   options=options, **curve)
         out.notes["regional_motion_noise"] = {"log_likelihood_gain": float(out.log_likelihood - before)}
     if hooked:
-        alt = out.notes.pop("other_curve", None)
         out = fit_hooked(log, replace(out, model=out.model.with_(effects={**out.model.effects, **warm})), hooked,
                          seed=seed, progress=progress, marginals=marginals, options=options)
-        if alt is not None and any(e.channel == "sensor" for e in augmented.instantiate(hooked, log)):
+        if alt is not None:
             out = curve_with_effects(log, out, alt, hooked, warm, seed, progress, marginals, options)
     out.notes["profiles"] = profiles
     return out

@@ -54,7 +54,7 @@ def paper_sigma_a(sigma, log: Log) -> np.ndarray:
     noise as a random walk, its std growing with the square root of the time (as every method here scales a
     step's noise by its length). The paper's own logs keep it as written; MRCLAM's 0.01-s odometry steps would take
     it as a heading noise of 1 rad per square-root second, and the smoother then follows the sightings."""
-    return np.asarray(sigma, float) * np.sqrt(float(np.median(log.dt)) / PAPER_STEP)
+    return np.asarray(sigma, float) / np.sqrt(log.in_median_steps(PAPER_STEP))
 
 
 def _observations(log: Log):
