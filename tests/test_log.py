@@ -4,8 +4,10 @@ import shutil
 import numpy as np
 import pytest
 
+import casm_graph as cg
 from casm_graph.cli import main
 from casm_graph.io.log import LogError, load
+from casm_graph.io.log import write as write_log
 
 
 def test_round_trip(short_bundle):
@@ -76,3 +78,49 @@ def test_bad_input_is_one_clear_message(short_bundle, tmp_path, capsys, case, na
     assert "Traceback" not in err
     assert err.count("\n") == 1 and all(w in err for w in words)
     assert not out.exists()
+
+
+def _changes_only(src, dst):
+    """A copy of bundle ``src`` whose commands.csv keeps only the rows where the command changes."""
+    shutil.copytree(src, dst)
+    lines = (dst / "commands.csv").read_text().splitlines()
+    vals = [r.split(",")[1:] for r in lines[1:]]
+    keep = [r for i, r in enumerate(lines[1:]) if i == 0 or vals[i] != vals[i - 1]]
+    (dst / "commands.csv").write_text("\n".join([lines[0]] + keep) + "\n")
+    return dst, len(keep)
+
+
+def test_commands_written_only_when_they_change_are_the_same_log(short_bundle, tmp_path):
+    """A log that writes a command row only at a change (a row every few seconds, sightings at 30 Hz) holds each row
+    over the sightings' frame: the same steps, actions and poses of the sightings as one row per step, the same
+    calibration, and errors that name the file's rows."""
+    d, log, _ = short_bundle
+    changed, rows = _changes_only(d, tmp_path / "changes")
+    back = load(changed)
+    n = back.steps
+    assert rows < log.steps / 20 and back.command_row is not None and n <= log.steps
+    assert np.all(back.obs_t <= back.pose_times[-1]) and n > log.steps - 30    # held until the last sighting
+    np.testing.assert_allclose(back.t, log.t[:n], atol=1e-9)
+    np.testing.assert_array_equal(back.action, log.action[:n])
+    np.testing.assert_array_equal(back.obs_step, log.obs_step)
+    np.testing.assert_allclose(back.truth, log.truth[:n + 1], atol=1e-8)
+    assert back.file_row(0) == 1 and back.file_row(n - 1) == rows
+    full, held = cg.calibrate(load(d), seed=0), cg.calibrate(back, seed=0)
+    assert held.model.fit["log_likelihood"] == pytest.approx(full.model.fit["log_likelihood"], abs=1.0)
+    np.testing.assert_allclose(held.model.velocities, full.model.velocities, atol=2e-3)
+    assert held.model_json["fit"]["held_commands"]["rows"] == rows and "held_commands" not in full.model_json["fit"]
+    assert f"the {rows} rows of commands.csv held" in held.summary()
+
+
+def test_continuous_commands_written_only_when_they_change_calibrate_alike(tmp_path):
+    """The same for continuous commands: SCASM's 1-D walk (a speed held for seconds at a time) written at changes
+    only gives SCASM-graph's calibration of the full log."""
+    log, _ = cg.simulate("scasm-1d", minutes=2, seed=1)
+    write_log(log, tmp_path / "full")
+    changed, rows = _changes_only(tmp_path / "full", tmp_path / "changes")
+    back = load(changed)
+    assert back.command_row is not None and rows < log.steps / 20
+    full, held = (cg.calibrate(load(p), method="scasm-graph", seed=0) for p in (tmp_path / "full", changed))
+    assert held.model["fit"]["log_likelihood"] == pytest.approx(full.model["fit"]["log_likelihood"], abs=0.1)
+    for part in ("action_model", "sensor_model"):
+        np.testing.assert_allclose(held.model[part]["coefficients"], full.model[part]["coefficients"], rtol=1e-5)

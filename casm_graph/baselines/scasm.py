@@ -50,7 +50,7 @@ def walk_of(log: Log) -> Walk:
     if np.any(c[:, other] != 0):
         j = other[int(np.flatnonzero(np.any(c[:, other] != 0, axis=0))[0])]
         i = int(np.flatnonzero(c[:, j] != 0)[0])
-        raise LogError(f"commands.csv, row {i + 1}, column '{names[j]}': SCASM needs a one-dimensional "
+        raise LogError(f"commands.csv, row {log.file_row(i)}, column '{names[j]}': SCASM needs a one-dimensional "
                        f"command, so '{names[j]}' must be 0 throughout")
     ok = np.isfinite(log.obs_reading)
     if ok.sum() < 10:

@@ -97,7 +97,7 @@ def check_identifiable(log: Log, sensor_degree: int = 3, method: str = "graph") 
             mine = np.flatnonzero(a[start] == act)
             best = mine[np.argmax(length[mine])]
             if length[best] < MIN_RUN_STEPS:
-                r0, r1 = start[best] + 1, start[best] + length[best]
+                r0, r1 = log.file_row(start[best]), log.file_row(start[best] + length[best] - 1)
                 raise LogError(f"commands.csv, row {r0}, column 'action': action {act} runs for only {length[best]} "
                                f"step(s) at most (rows {r0}-{r1}); the start fits each action's velocity on a run "
                                f"of at least {MIN_RUN_STEPS} command steps (three of its knots), so every action "

@@ -41,6 +41,8 @@ class Log:
     attempted: dict[int, np.ndarray] = field(default_factory=dict)   # actions.csv, information only
     truth: np.ndarray | None = None     # (T+1, 4) t, x, y, theta at pose times, when known
     source: str | None = None           # the bundle's directory, when loaded from disk
+    command_row: np.ndarray | None = None   # (T,) row of commands.csv each step holds, when rows were held over
+    #                                         several steps (:func:`held_steps`); None: one step per row
 
     @property
     def steps(self) -> int:
@@ -105,6 +107,10 @@ class Log:
         image angle is the bearing)."""
         return _frozen(np.zeros(len(self.obs_t)) if self.obs_pan is None else np.nan_to_num(self.obs_pan))
 
+    def file_row(self, step: int) -> int:
+        """The data row of commands.csv (1 = the first after the header) that step ``step`` runs."""
+        return int(step if self.command_row is None else self.command_row[step]) + 1
+
     @property
     def minutes(self) -> float:
         return float(self.pose_times[-1] - self.pose_times[0]) / 60.0
@@ -125,6 +131,7 @@ class Log:
             t=self.t[idx],
             action=None if self.action is None else self.action[idx],
             controls=None if self.controls is None else self.controls[idx],
+            command_row=None if self.command_row is None else self.command_row[idx],
             obs_t=self.obs_t[ok], obs_landmark=self.obs_landmark[ok],
             obs_reading=self.obs_reading[ok], obs_bearing=self.obs_bearing[ok],
             obs_pan=None if self.obs_pan is None else self.obs_pan[ok],
@@ -170,6 +177,8 @@ MAX_HEADING = 1e6           # rad (truth may be unwrapped)
 MIN_MEDIAN_STEP = 1e-4      # s between commands (a command log at over 10 kHz is a scaled time column)
 MAX_MEDIAN_STEP = 600.0     # s: commands held for ten minutes each are not a velocity log
 MAX_GAP = 86400.0           # s: a day without commands is two logs
+HELD_SPLIT = 2.0            # commands whose median step is this many sightings' frames long are held over frames
+MAX_HELD_STEPS = 5_000_000  # steps such holding may make (46 hours at 30 Hz)
 
 
 def _show(cell: str) -> str:
@@ -296,6 +305,30 @@ def _plausible_step(tab: _Table, t: np.ndarray) -> None:
                            f"two commands (more than a day); split the log there into two")
 
 
+def held_steps(t: np.ndarray, obs_t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(row of commands.csv of each step, the steps' times) when the commands change far more seldom than the
+    sightings come (a log that writes a row only when the command changes): each row is held over steps of the
+    sightings' frame (the median gap between distinct sighting times), the last one until the last sighting (a row
+    written at a change says nothing of how long the last command ran), so that every sighting has a pose near its
+    time. None when the rows already are that fine."""
+    u = np.unique(obs_t)
+    if len(t) < 2 or len(u) < 2:
+        return None
+    frame = float(np.median(np.diff(u)))
+    step = float(np.median(np.diff(t)))
+    if frame <= 0 or step <= HELD_SPLIT * frame:
+        return None
+    d = np.append(np.diff(t), max(frame, float(u[-1] - t[-1])))
+    n = np.maximum(1, np.rint(d / frame)).astype(int)
+    if n.sum() > MAX_HELD_STEPS:
+        raise LogError(f"commands.csv, rows 1-{len(t)}, column 't': a row every {step:.3g} s (median) held over the "
+                       f"sightings' frame of {frame:.3g} s would make {n.sum():,} steps; write one row per control "
+                       f"step, or split the log")
+    rows = np.repeat(np.arange(len(t)), n)
+    first = np.repeat(np.cumsum(n) - n, n)
+    return rows, t[rows] + (np.arange(len(rows)) - first) * (d / n)[rows]
+
+
 def _truth_at_poses(truth: np.ndarray, t: np.ndarray) -> np.ndarray | None:
     """truth.csv at other times than the poses' (one per command step plus the final one): interpolated
     at the pose times when it covers them, else left out (it is information only, never fitted)."""
@@ -368,6 +401,12 @@ def load(directory: str | Path) -> Log:
     pan = ob.numbers("pan", allow_empty=True, bound=MAX_ANGLE, unit=" rad") if ob.has("pan") else None
     if np.all(np.isnan(reading) & np.isnan(bearing)):
         raise LogError("observations.csv: every row has both 'reading' and 'bearing' empty")
+    held = held_steps(t, ot)
+    row = None
+    if held is not None:
+        row, t = held
+        action = None if action is None else action[row]
+        controls = None if controls is None else controls[row]
     step = np.median(np.diff(t)) if len(t) > 1 else 1.0
     out = np.flatnonzero((ot < t[0] - step / 2) | (ot > t[-1] + 1.5 * step))
     if len(out):
@@ -391,12 +430,12 @@ def load(directory: str | Path) -> Log:
         truth = np.column_stack([tr.numbers(c, bound=b, unit=u) for c, b, u in
                                  (("t", MAX_TIME, " s"), ("x", MAX_POSITION, " m"), ("y", MAX_POSITION, " m"),
                                   ("theta", MAX_HEADING, " rad"))])
-        if len(truth) != len(t) + 1:
+        if len(truth) != len(t) + 1 or row is not None:
             truth = _truth_at_poses(truth, t)
 
     return Log(landmark_ids=ids, landmark_xy=xy, t=t, action=action, controls=controls,
                control_names=names, obs_t=ot, obs_landmark=ol, obs_reading=reading,
-               obs_bearing=bearing, obs_pan=pan, attempted=attempted, truth=truth, source=str(d))
+               obs_bearing=bearing, obs_pan=pan, attempted=attempted, truth=truth, source=str(d), command_row=row)
 
 
 # --------------------------------------------------------------------------- writing
