@@ -6,7 +6,7 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.cli import main
-from casm_graph.io.log import LogError, load
+from casm_graph.io.log import LogError, held_steps, load
 from casm_graph.io.log import write as write_log
 
 
@@ -110,6 +110,11 @@ def test_commands_written_only_when_they_change_are_the_same_log(short_bundle, t
     np.testing.assert_allclose(held.model.velocities, full.model.velocities, atol=2e-3)
     assert held.model_json["fit"]["held_commands"]["rows"] == rows and "held_commands" not in full.model_json["fit"]
     assert f"the {rows} rows of commands.csv held" in held.summary()
+    frames = np.arange(0.0, 60.0, 1 / 30)            # three tags a frame, stamped 1 ms apart: one frame, not three
+    tags = np.sort(np.concatenate([frames, frames + 0.001, frames + 0.002]))
+    assert held_steps(frames, tags) is None
+    rows, times = held_steps(frames[::150], tags)    # a row every 5 s: held over the 30-Hz frames
+    assert np.median(np.diff(times)) == pytest.approx(1 / 30, rel=0.1) and rows[-1] == 11
 
 
 def test_continuous_commands_written_only_when_they_change_calibrate_alike(tmp_path):

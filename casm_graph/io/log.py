@@ -308,13 +308,15 @@ def _plausible_step(tab: _Table, t: np.ndarray) -> None:
 def held_steps(t: np.ndarray, obs_t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """(row of commands.csv of each step, the steps' times) when the commands change far more seldom than the
     sightings come (a log that writes a row only when the command changes): each row is held over steps of the
-    sightings' frame (the median gap between distinct sighting times), the last one until the last sighting (a row
+    sightings' frame (the median gap between distinct sighting times, leaving out gaps under half their 90th
+    percentile: sightings of one frame stamped apart), the last one until the last sighting (a row
     written at a change says nothing of how long the last command ran), so that every sighting has a pose near its
     time. None when the rows already are that fine."""
     u = np.unique(obs_t)
     if len(t) < 2 or len(u) < 2:
         return None
-    frame = float(np.median(np.diff(u)))
+    gaps = np.diff(u)
+    frame = float(np.median(gaps[gaps >= 0.5 * np.quantile(gaps, 0.9)]))
     step = float(np.median(np.diff(t)))
     if frame <= 0 or step <= HELD_SPLIT * frame:
         return None
