@@ -364,13 +364,15 @@ def test_a_strong_range_dependent_noise_is_named(tmp_path):
 def test_false_detections_on_continuous_commands_named_and_modelled(tmp_path):
     """Issues 20-21: a share of the sightings follows no landmark (uniform readings and bearings, the world's
     own draw); the continuous diagnosis scores the mixture on every sighting, the gated ones too, names it with
-    a held-out gain, and once it is added the fitted share is the world's, nothing is named and the error falls.
-    Without the mixture the wild readings near the landmarks push the fit to a steep curve in 1/d; with it the
-    curve is chosen again (it had stayed in 1/d: 0.018 m from the truth and ``unexplained:distance``)."""
+    a held-out gain, and once it is added the fitted share is the world's and nothing is named. The wild readings
+    do not choose the sensor curve: the two curves are scored on the sightings one of them explains (scored on all,
+    the fit without the mixture took a steep curve in 1/d, 0.018 m from the truth, and with the mixture the curve
+    had to be chosen again, or the next diagnosis said ``unexplained:distance``)."""
     truth = generate(tmp_path / "log", kind="continuous", minutes=4, seed=7, effect="false_detections",
                      min_range=0.3)
     log = cg.load_log(tmp_path / "log")
     base = cg.calibrate(log, seed=7)
+    assert base.model.reading_basis == "distance" and position_rms(base, log) < 0.012, base.model.fit["sensor_degree"]
     diag = cg.diagnose(log, base)
     assert diag.verdict == "false_detections", [(c.effect, c.delta_bic) for c in diag.candidates]
     top = diag.candidates[0]
@@ -379,7 +381,7 @@ def test_false_detections_on_continuous_commands_named_and_modelled(tmp_path):
     share = truth["stats"]["n_false"] / truth["stats"]["n_observations"]
     assert fixed.model.effects["false_detections"]["fraction"] == pytest.approx(share, rel=0.2)
     assert fixed.model.reading_basis == "distance", fixed.model.fit["sensor_degree"]
-    assert position_rms(fixed, log) < 0.8 * position_rms(base, log)
+    assert position_rms(fixed, log) < 1.02 * position_rms(base, log)
     again = cg.diagnose(log, fixed)
     assert again.verdict == "none", [(c.effect, c.delta_bic) for c in again.candidates]
 
@@ -415,3 +417,17 @@ def test_a_whole_turn_wound_into_a_few_knots_is_unwound(tmp_path):
     assert np.max(np.abs(heading)) < 0.2
     assert cal.model.motion_noise[2] < 0.01
     assert cal.model.fit["outliers_set_aside"]["bearing"] < 5
+
+
+@pytest.mark.science
+def test_a_camera_on_its_own_clock_is_no_latency(tmp_path):
+    """Frames 0.04 s after each command row (a 10-Hz camera on its own clock): taken to the nearest pose, every
+    image reads as the world a fixed time later, and an effect-free world was called camera_latency (delay
+    -0.03 s on six minutes; delta BIC -44 on these three). Each sighting time now starts a step of its own."""
+    generate(tmp_path / "log", minutes=3, seed=4, min_range=0.8, camera=(10.0, 0.04))
+    log = cg.load_log(tmp_path / "log")
+    assert log.command_row is not None and np.abs(log.obs_t - log.pose_times[log.obs_step]).max() < 1e-3
+    np.testing.assert_array_equal(np.unique(log.command_row), np.arange(1800))
+    cal = cg.calibrate(log, seed=0)
+    assert cg.diagnose(log, cal).verdict == "none"
+    assert cal.model_json["fit"]["held_commands"]["rows"] == 1800

@@ -58,3 +58,15 @@ def test_graph_em_sets_wild_readings_aside_too():
     fit = calibrate(wild, method="graph-em", seed=0)
     assert fit.model.fit["outliers_pruned"] >= 5
     assert 0.9 < fit.model.reading_sigma < 1.1, fit.model.reading_sigma
+
+
+def test_one_wild_reading_does_not_choose_a_continuous_logs_sensor_curve():
+    """A three-minute floor (296 readings) with one reading times 10,000: pruned, it marks the fit in d as
+    suspect, and scored on every sighting under Huber's loss it made the curve with the larger reading sigma win
+    (a quintic in 1/d, reading sigma 1.42 times the clean log's, not converged). The curves are now scored on the
+    sightings at least one of them explains."""
+    log, _ = simulate("floor", minutes=3, seed=0)
+    wild = corrupt(log, "wild1", np.random.default_rng(0))
+    clean, bad = (calibrate(x, seed=0).model for x in (log, wild))
+    assert bad.reading_basis == clean.reading_basis == "distance"
+    assert bad.reading_sigma == pytest.approx(clean.reading_sigma, rel=0.05) and bad.fit["converged"]

@@ -221,7 +221,8 @@ def corner_figure(unc):
     side = 2.0 * len(ch.names) + 1.0         # corner's own size rule; given a figure it makes no pyplot one
     fig = corner.corner(ch.samples, fig=Figure(figsize=(side, side)), labels=ch.names, quantiles=[0.05, 0.5, 0.95], show_titles=True, axes_scale=scale,
                         title_fmt=".3g", truths=[truths.get(n) for n in ch.names] if truths else None,
-                        truth_color="C3", label_kwargs={"fontsize": 8}, title_kwargs={"fontsize": 8})
+                        truth_color="C3", label_kwargs={"fontsize": 8}, title_kwargs={"fontsize": 8},
+                        quiet=True)      # a short chain's flat contours: the chain's own warning says it is short
     return fig
 
 

@@ -319,9 +319,13 @@ def _pose_at(fine, t):
     return out
 
 
-def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s, min_range=MIN_RANGE):
-    """Sightings at command-row times: visibility, detection, curve, noise and sensor effects."""
-    t = np.arange(rows) / CMD_HZ[kind]
+def _observe(rng, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s, min_range=MIN_RANGE, camera=None):
+    """Sightings at command-row times, or on the camera's own clock (``camera``: rate in Hz, phase in s):
+    visibility, detection, curve, noise and sensor effects."""
+    if camera is None:
+        t = np.arange(rows) / CMD_HZ[kind]
+    else:
+        t = camera[1] + np.arange(int((rows / CMD_HZ[kind] - camera[1]) * camera[0])) / camera[0]
     pose = _pose_at(fine, t - s if effect == "camera_latency" else t)
     dx = lm_true[None, :, 0] - pose[:, None, 0]
     dy = lm_true[None, :, 1] - pose[:, None, 1]
@@ -374,9 +378,10 @@ def _write(path, header, lines):
 
 # ----------------------------------------------------------------------------- entry point
 def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=None, sensor="both",
-             min_range=MIN_RANGE):
+             min_range=MIN_RANGE, camera=None):
     """Write a complete log bundle into out_dir (new or empty) and return the truth dict (``min_range``: the
-    closest a landmark is sighted, m)."""
+    closest a landmark is sighted, m; ``camera``: (rate Hz, phase s) of a camera on its own clock, None: a sighting
+    time is a command row's)."""
     if kind not in CMD_HZ:
         raise ValueError(f"kind must be 'table' or 'continuous', not {kind!r}")
     if sensor not in ("both", "range", "bearing"):
@@ -408,7 +413,7 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
         policy = _WaypointController(r_policy, field)
     fine, commands = _simulate(r_motion, kind, field, phys, policy, rows)
     obs_lines, obs_stats = _observe(r_sensor, kind, sensor, fine, rows, lm_ids, lm_true, curve, effect, s,
-                                    min_range)
+                                    min_range, camera)
 
     os.makedirs(out_dir, exist_ok=True)
     hz, sub = CMD_HZ[kind], PHYS_HZ // CMD_HZ[kind]
@@ -439,7 +444,7 @@ def generate(out_dir, kind="table", minutes=6.0, seed=0, effect=None, strength=N
                   "jitter": list(JITTER)},
         "sensing": {"p_detect": P_DETECT, "fov": FOV[_ranging(kind, sensor)], "min_range": min_range,
                     "max_range": MAX_RANGE},
-        "rates": {"physics_hz": PHYS_HZ, "command_hz": hz},
+        "rates": {"physics_hz": PHYS_HZ, "command_hz": hz, "camera": camera},
         "stats": {"fraction_outside": float(np.mean(_clearance(field, fine[:, 0], fine[:, 1]) < 0)),
                   **obs_stats},
     }
@@ -465,9 +470,11 @@ def main(argv=None):
     ap.add_argument("--strength", type=float, default=None)
     ap.add_argument("--sensor", choices=["both", "range", "bearing"], default="both")
     ap.add_argument("--min-range", type=float, default=MIN_RANGE, help="closest sighting, m")
+    ap.add_argument("--camera", type=float, nargs=2, metavar=("HZ", "PHASE"),
+                    help="a camera on its own clock: its rate and the time of its first frame, s")
     a = ap.parse_args(argv)
     try:
-        truth = generate(a.out, a.kind, a.minutes, a.seed, a.effect, a.strength, a.sensor, a.min_range)
+        truth = generate(a.out, a.kind, a.minutes, a.seed, a.effect, a.strength, a.sensor, a.min_range, a.camera)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
