@@ -6,7 +6,7 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.cli import main
-from casm_graph.io.log import LogError, held_steps, load, sighting_steps
+from casm_graph.io.log import LogError, held_steps, load
 from casm_graph.io.log import write as write_log
 
 
@@ -129,14 +129,3 @@ def test_continuous_commands_written_only_when_they_change_calibrate_alike(tmp_p
     assert held.model["fit"]["log_likelihood"] == pytest.approx(full.model["fit"]["log_likelihood"], abs=0.1)
     for part in ("action_model", "sensor_model"):
         np.testing.assert_allclose(held.model[part]["coefficients"], full.model[part]["coefficients"], rtol=1e-5)
-
-
-def test_sightings_off_the_grid_start_steps_of_their_own():
-    """Sightings a median of more than 10 ms from the nearest command time (a camera on its own clock) each start a
-    step under the command that holds there; a few milliseconds off (MRCLAM's 4 ms) keep the nearest pose."""
-    t = np.arange(0.0, 10.0, 0.1)
-    rows, times = sighting_steps(t, t[:-1] + 0.04)
-    assert len(times) == 2 * len(t) - 1 and np.all(t[rows] <= times) and np.all(np.diff(times) > 0)
-    np.testing.assert_allclose(times[1::2], t[:-1] + 0.04)
-    np.testing.assert_array_equal(rows[1::2], np.arange(len(t) - 1))
-    assert sighting_steps(t, t[:-1] + 0.004) is None and sighting_steps(t, t) is None

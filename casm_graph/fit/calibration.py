@@ -124,8 +124,8 @@ class Calibration:
         kind = m.action.describe()
         lines = [f"casm-graph calibration of {log.source or 'a log'} by {fit.get('method', self.options.method)}",
                  f"  log: {kind}, {log.steps} steps, {len(log.obs_t)} sightings, {log.minutes:.1f} min"
-                 + (f" (the {log.command_row[-1] + 1} rows of commands.csv held over steps at the sightings' "
-                    f"times, median {np.median(log.dt):.3g} s)" if log.command_row is not None else ""),
+                 + (f" (the {log.command_row[-1] + 1} rows of commands.csv held over steps of "
+                    f"{np.median(log.dt):.3g} s, the sightings' frame)" if log.command_row is not None else ""),
                  f"  fit: {'converged' if fit.get('converged') else 'NOT converged'} after {fit.get('iterations')} "
                  f"iterations in {fit.get('seconds', 0):.1f} s, log-likelihood {fit.get('log_likelihood', float('nan')):,.1f}",
                  f"  sensor: reading sigma {m.noise_text('reading')} (reading units), bearing sigma "

@@ -42,8 +42,7 @@ class Log:
     truth: np.ndarray | None = None     # (T+1, 4) t, x, y, theta at pose times, when known
     source: str | None = None           # the bundle's directory, when loaded from disk
     command_row: np.ndarray | None = None   # (T,) row of commands.csv each step holds, when rows were held over
-    #                                         several steps (:func:`held_steps`, :func:`sighting_steps`); None: one
-    #                                         step per row
+    #                                         several steps (:func:`held_steps`); None: one step per row
 
     @property
     def steps(self) -> int:
@@ -180,8 +179,6 @@ MAX_MEDIAN_STEP = 600.0     # s: commands held for ten minutes each are not a ve
 MAX_GAP = 86400.0           # s: a day without commands is two logs
 HELD_SPLIT = 2.0            # commands whose median step is this many sightings' frames long are held over frames
 MAX_HELD_STEPS = 5_000_000  # steps such holding may make (46 hours at 30 Hz)
-OFF_GRID = 0.01             # s: sightings a median of more than this from their nearest pose get poses of their own
-ON_GRID = 1e-3             # s: a sighting this close to a pose time is at it
 
 
 def _show(cell: str) -> str:
@@ -334,23 +331,6 @@ def held_steps(t: np.ndarray, obs_t: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rows, t[rows] + (np.arange(len(rows)) - first) * (d / n)[rows]
 
 
-def sighting_steps(t: np.ndarray, obs_t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(step each new step continues, the steps' times) when the sightings lie off the steps' grid (a camera on its
-    own clock): their median distance in time from the nearest pose is more than ``OFF_GRID``. Each distinct
-    sighting time then starts a step of its own, under the command that holds there, so every sighting is seen
-    from the pose of its time; taken to the nearest pose instead, a fixed phase reads as a camera latency and a
-    drifting one as bearing noise growing with the turn rate. None when the sightings are on the grid."""
-    if len(t) < 2 or len(obs_t) == 0:
-        return None
-    pose_t = np.append(t, t[-1] + float(np.median(np.diff(t))))
-    if float(np.median(np.abs(obs_t - pose_t[nearest_index(pose_t, obs_t)]))) <= OFF_GRID:
-        return None
-    u = np.unique(obs_t)
-    u = u[(u > t[0]) & (np.abs(u - pose_t[nearest_index(pose_t, u)]) > ON_GRID)]
-    times = np.union1d(t, u)
-    return np.searchsorted(t, times, side="right") - 1, times
-
-
 def _truth_at_poses(truth: np.ndarray, t: np.ndarray) -> np.ndarray | None:
     """truth.csv at other times than the poses' (one per command step plus the final one): interpolated
     at the pose times when it covers them, else left out (it is information only, never fitted)."""
@@ -433,11 +413,6 @@ def load(directory: str | Path) -> Log:
     row = None
     if held is not None:
         row, t = held
-    off = sighting_steps(t, ot)
-    if off is not None:
-        step_row, t = off
-        row = step_row if row is None else row[step_row]
-    if row is not None:
         action = None if action is None else action[row]
         controls = None if controls is None else controls[row]
 
