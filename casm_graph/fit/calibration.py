@@ -106,9 +106,8 @@ class Calibration:
         data = self.model if isinstance(self.model, dict) else self.model.to_json()
         run = {"options": self.options.to_json(), "version": version(), "log": self.log.source,
                "command": self.command}
-        if self.log.command_row is not None:
-            run["held_commands"] = {"rows": int(self.log.command_row[-1]) + 1, "steps": self.log.steps,
-                                    "step": float(np.median(self.log.dt))}
+        if self.log.held_commands is not None:
+            run["held_commands"] = self.log.held_commands
         return {**data, "fit": {**data.get("fit", {}), **run}}
 
     def summary(self) -> str:
@@ -124,8 +123,8 @@ class Calibration:
         kind = m.action.describe()
         lines = [f"casm-graph calibration of {log.source or 'a log'} by {fit.get('method', self.options.method)}",
                  f"  log: {kind}, {log.steps} steps, {len(log.obs_t)} sightings, {log.minutes:.1f} min"
-                 + (f" (the {log.command_row[-1] + 1} rows of commands.csv held over steps of "
-                    f"{np.median(log.dt):.3g} s, the sightings' frame)" if log.command_row is not None else ""),
+                 + (" (the {rows} rows of commands.csv held over steps of {step:.3g} s, the sightings' frame)".format(
+                     **log.held_commands) if log.held_commands is not None else ""),
                  f"  fit: {'converged' if fit.get('converged') else 'NOT converged'} after {fit.get('iterations')} "
                  f"iterations in {fit.get('seconds', 0):.1f} s, log-likelihood {fit.get('log_likelihood', float('nan')):,.1f}",
                  f"  sensor: reading sigma {m.noise_text('reading')} (reading units), bearing sigma "

@@ -107,6 +107,14 @@ class Log:
         image angle is the bearing)."""
         return _frozen(np.zeros(len(self.obs_t)) if self.obs_pan is None else np.nan_to_num(self.obs_pan))
 
+    @property
+    def held_commands(self) -> dict | None:
+        """How commands.csv's rows were held over steps (:func:`held_steps`): rows, steps and the median step in s;
+        None when each row is one step."""
+        if self.command_row is None:
+            return None
+        return {"rows": int(self.command_row[-1]) + 1, "steps": self.steps, "step": float(np.median(self.dt))}
+
     def file_row(self, step: int) -> int:
         """The data row of commands.csv (1 = the first after the header) that step ``step`` runs."""
         return int(step if self.command_row is None else self.command_row[step]) + 1
