@@ -6,7 +6,7 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.cli import main
-from casm_graph.io.log import LogError, held_steps, load
+from casm_graph.io.log import LogError, held_steps, load, sighting_steps
 from casm_graph.io.log import write as write_log
 
 
@@ -129,3 +129,26 @@ def test_continuous_commands_written_only_when_they_change_calibrate_alike(tmp_p
     assert held.model["fit"]["log_likelihood"] == pytest.approx(full.model["fit"]["log_likelihood"], abs=0.1)
     for part in ("action_model", "sensor_model"):
         np.testing.assert_allclose(held.model[part]["coefficients"], full.model[part]["coefficients"], rtol=1e-5)
+
+
+def test_sightings_off_the_commands_grid_get_poses_of_their_own(tmp_path):
+    """A camera on its own clock (frames 40 ms after each 10-Hz command row here): each sighting time starts a step
+    under the row that holds there, so every sighting is seen from the pose of its own time; each row still moves
+    the robot as far, truth is interpolated at the new poses, and a few ms of jitter (MRCLAM's) changes nothing."""
+    log, _ = cg.simulate("floor", minutes=1, seed=0)
+    moved = cg.Log(**{**log.__dict__, "obs_t": log.obs_t + 0.04})
+    write_log(moved, tmp_path / "off")
+    back = load(tmp_path / "off")
+    first = np.flatnonzero(np.diff(np.append(-1, back.command_row)))
+    assert len(first) == log.steps and back.steps == log.steps + len(np.unique(log.obs_t)) - 1
+    np.testing.assert_allclose(back.t[first], log.t, atol=1e-9)
+    np.testing.assert_allclose(back.controls, log.controls[back.command_row], atol=1e-8)
+    inside = back.obs_t < log.pose_times[-1]          # one sighting after the last command's step: the final pose
+    assert np.abs(back.obs_t - back.pose_times[back.obs_step])[inside].max() < 1e-9 and np.sum(~inside) == 1
+    rows = np.zeros((log.steps, 2))
+    np.add.at(rows, back.command_row, back.controls * back.dt[:, None])
+    np.testing.assert_allclose(rows[:-1], (log.controls * log.dt[:, None])[:-1], atol=1e-8)
+    np.testing.assert_allclose(back.truth[first, 1:3], log.truth[:-1, 1:3], atol=1e-6)
+    assert f"the {log.steps} rows of commands.csv held" in cg.calibrate(back, seed=0).summary()
+    jitter = log.obs_t + np.random.default_rng(0).uniform(-0.008, 0.008, len(log.obs_t))
+    assert sighting_steps(log.t, np.sort(jitter)) is None

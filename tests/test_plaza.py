@@ -37,6 +37,12 @@ def dead_reckon(log):
     return integrate(log.truth[0, 1:4], steps)
 
 
+def row_starts(log):
+    """The step where each row of commands.csv starts: the ranges lie off the odometry's 0.2-s grid, so loading
+    the bundle starts a step at each range's time too (``io.log.sighting_steps``)."""
+    return np.flatnonzero(np.diff(np.append(-1, log.command_row)))
+
+
 def synthetic(n=60, seed=0) -> dict:
     """A small Plaza-like data set whose odometry is exact: GT composed from the DR increments."""
     rng = np.random.default_rng(seed)
@@ -58,17 +64,25 @@ def test_rows_times_and_empty_bearings(bundle, raw):
     log = load(bundle)
     dr, gt, td, tl = raw["DR"], raw["GT"], raw["TD"], raw["TL"]
     assert log.control_names == ("v", "w") and log.action is None
-    assert log.steps == len(dr) == 9657 and len(log.obs_t) == len(td) == 3529
+    first = row_starts(log)
+    assert len(first) == len(dr) == 9657 and len(log.obs_t) == len(td) == 3529
+    assert np.array_equal(log.command_row[first], np.arange(len(dr)))
     assert sorted(log.landmark_ids.tolist()) == sorted(tl[:, 0].astype(int).tolist())
     assert log.truth.shape == (log.steps + 1, 4)
+    # each range is seen from a pose of its own time: a step starts at each range time more than 1 ms off a row's
+    assert np.abs(log.obs_t - log.pose_times[log.obs_step]).max() < 1e-3
+    grid = np.append(log.t[first], log.t[first][-1] + 0.2)
+    ranges = np.unique(log.obs_t)
+    near = np.minimum(np.abs(ranges - grid[np.clip(np.searchsorted(grid, ranges), 0, len(grid) - 1)]),
+                      np.abs(ranges - grid[np.clip(np.searchsorted(grid, ranges) - 1, 0, len(grid) - 1)]))
+    assert log.steps == len(dr) + np.sum((near > 1e-3) & (ranges > 0)) == 13130
     t0 = gt[0, 0]
     # command i holds from DR row i-1's time (GT's first for i = 0) to DR row i's time
-    assert log.t[0] == 0.0 and np.allclose(log.t[1:], dr[:-1, 0] - t0, atol=1e-6)
-    dt = np.diff(np.append(log.t, dr[-1, 0] - t0))
-    assert np.allclose(log.controls[:, 0] * dt, dr[:, 1], atol=1e-6)
-    assert np.allclose(log.controls[:, 1] * dt, dr[:, 2], atol=1e-6)
-    assert np.allclose(log.truth[:-1, 1:3], gt[:-1, 1:3], atol=1e-6)
-    assert np.allclose(log.truth[-1, 1:3], gt[-1, 1:3], atol=1e-6)
+    assert log.t[0] == 0.0 and np.allclose(log.t[first][1:], dr[:-1, 0] - t0, atol=1e-6)
+    moved = np.zeros((len(dr), 2))
+    np.add.at(moved, log.command_row, log.controls * log.dt[:, None])
+    assert np.allclose(moved[:-1], dr[:-1, 1:3], atol=1e-6)       # the last row lasts the log's final step
+    assert np.allclose(log.truth[first, 1:3], gt[:-1, 1:3], atol=1e-6)
     # every range kept, sorted by time (two TD rows are out of order in the file)
     assert np.all(np.diff(log.obs_t) >= 0)
     order = np.argsort(td[:, 0], kind="stable")
@@ -90,12 +104,14 @@ def test_dead_reckoning_from_the_true_start(bundle, raw):
     but its positions were integrated along a heading that drifts ~0.02 rad/min away from it, whereas
     DR's heading changes equal GT's. The commands themselves drift to ~2 m RMS (4.4 m worst)."""
     log = load(bundle)
-    poses = dead_reckon(log)
+    first = row_starts(log)
+    poses = dead_reckon(log)[first]
+    truth = log.truth[first]
     gt, drp = raw["GT"], raw["DRp"]
-    path = np.sum(np.hypot(*np.diff(drp[:, 1:3], axis=0).T))
+    path = np.sum(np.hypot(*np.diff(drp[:-1, 1:3], axis=0).T))
     assert abs(np.sum(np.hypot(*np.diff(poses[:, :2], axis=0).T)) - path) < 1e-3 * path
-    assert np.max(np.abs(wrap(poses[:, 2] - log.truth[:, 3]))) < 1e-5
-    err = np.hypot(*(poses[:, :2] - log.truth[:, 1:3]).T)
+    assert np.max(np.abs(wrap(poses[:, 2] - truth[:, 3]))) < 1e-5
+    err = np.hypot(*(poses[:, :2] - truth[:, 1:3]).T)
     rms = float(np.sqrt(np.mean(err ** 2)))
     assert 1.0 < rms < 4.0 and err.max() < 8.0                      # measured 1.97 m, 4.39 m
     drp_err = np.hypot(*(drp[:, 1:3] - gt[:, 1:3]).T)
@@ -111,19 +127,20 @@ def test_minutes_cut_and_force(raw, tmp_path, capsys):
     dr, gt, td = raw["DR"], raw["GT"], raw["TD"]
     ends = dr[:, 0] - gt[0, 0]
     kept = int(np.sum(ends <= 120.0))
-    assert log.steps == kept and abs(log.minutes - 2.0) < 0.01
+    assert len(row_starts(log)) == kept and abs(log.minutes - 2.0) < 0.01
     ot = td[:, 0] - gt[0, 0]
     assert len(log.obs_t) == int(np.sum((ot >= 0) & (ot <= ends[kept - 1])))
-    assert np.allclose(log.truth[-1, 1:3], gt[kept, 1:3], atol=1e-6)
+    assert np.allclose(log.truth[row_starts(log)[-1], 1:3], gt[kept - 1, 1:3], atol=1e-6)
     direct = plaza.load_plaza(DATA, minutes=2)
-    assert np.allclose(direct.controls, log.controls, atol=1e-6) and np.allclose(direct.obs_t, log.obs_t, atol=1e-6)
+    assert np.allclose(direct.t, log.t, atol=1e-6) and np.allclose(direct.controls, log.controls, atol=1e-6)
+    assert np.allclose(direct.obs_t, log.obs_t, atol=1e-6) and np.allclose(direct.truth, log.truth, atol=1e-6)
 
     assert main(["import-plaza", str(DATA), "--out", str(out), "--minutes", "1"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--force" in err
-    assert load(out).steps == kept
+    assert len(row_starts(load(out))) == kept
     assert main(["import-plaza", str(DATA), "--out", str(out), "--minutes", "1", "--force"]) == 0
-    assert load(out).steps < kept
+    assert len(row_starts(load(out))) < kept
 
 
 def test_synthetic_round_trip_reports_dropped_ranges(tmp_path, capsys):
@@ -134,10 +151,12 @@ def test_synthetic_round_trip_reports_dropped_ranges(tmp_path, capsys):
     cap = capsys.readouterr()
     assert "1 range(s) before the first pose" in cap.err and "1 range(s) after the last odometry row" in cap.err
     log = load(out)
-    assert log.steps == 60 and len(log.obs_t) == 20 and np.all(np.isnan(log.obs_bearing))
-    poses = dead_reckon(log)          # exact odometry: the commands give GT back (the last step lasts the median)
-    assert np.allclose(poses[:-1, :2], data["GT"][:-1, 1:3], atol=1e-6)
-    assert np.allclose(wrap(poses[:-1, 2] - data["GT"][:-1, 3]), 0.0, atol=1e-6)
+    first = row_starts(log)
+    assert len(first) == 60 and log.steps == 80 and len(log.obs_t) == 20 and np.all(np.isnan(log.obs_bearing))
+    poses = dead_reckon(log)[first]   # exact odometry: the commands give GT back at each row's start, the positions
+    #                                   up to the rows split at ranges' times (a turn begun inside the row)
+    assert np.allclose(poses[:, :2], data["GT"][:-1, 1:3], atol=0.02)
+    assert np.allclose(wrap(poses[:, 2] - data["GT"][:-1, 3]), 0.0, atol=1e-6)
     with pytest.raises(LogError, match="at least two"):
         plaza.load_plaza(tmp_path / "small.mat", minutes=0.001)
 

@@ -11,7 +11,9 @@ from casm_graph.analysis.likelihood import likelihood
 from casm_graph.pipeline.bad_data import corrupt, trial
 from casm_graph.pipeline.calibrate import calibrate
 from casm_graph.pipeline.uncertainty import prepare
+from casm_graph.io.log import load as load_log
 from casm_graph.sim.protocols import simulate
+from tests.worlds.independent_world import generate
 
 from .conftest import FULL
 
@@ -60,7 +62,7 @@ def test_graph_em_sets_wild_readings_aside_too():
     assert 0.9 < fit.model.reading_sigma < 1.1, fit.model.reading_sigma
 
 
-def test_one_wild_reading_does_not_choose_a_continuous_logs_sensor_curve():
+def test_one_wild_reading_does_not_choose_a_sensor_curve(tmp_path):
     """A three-minute floor (296 readings) with one reading times 10,000: pruned, it marks the fit in d as
     suspect, and scored on every sighting under Huber's loss it made the curve with the larger reading sigma win
     (a quintic in 1/d, reading sigma 1.42 times the clean log's, not converged). The curves are now scored on the
@@ -70,3 +72,12 @@ def test_one_wild_reading_does_not_choose_a_continuous_logs_sensor_curve():
     clean, bad = (calibrate(x, seed=0).model for x in (log, wild))
     assert bad.reading_basis == clean.reading_basis == "distance"
     assert bad.reading_sigma == pytest.approx(clean.reading_sigma, rel=0.05) and bad.fit["converged"]
+    # the action-table path shares the scorer: the independent world's apparent size seen from 0.3 m, two minutes,
+    # chose a sextic in 1/d (reading sigma 1.077 against the clean log's cubic and 1.065) with that reading in
+    generate(tmp_path / "w", kind="table", minutes=2, seed=0, min_range=0.3)
+    log = load_log(tmp_path / "w")
+    wild = corrupt(log, "wild1", np.random.default_rng(0))
+    clean, bad = (calibrate(x, seed=0).model for x in (log, wild))
+    assert bad.reading_basis == clean.reading_basis == "inverse_distance"
+    assert len(bad.reading_poly) == len(clean.reading_poly) == 4
+    assert bad.reading_sigma == pytest.approx(clean.reading_sigma, rel=0.01)

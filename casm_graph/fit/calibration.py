@@ -123,8 +123,8 @@ class Calibration:
         kind = m.action.describe()
         lines = [f"casm-graph calibration of {log.source or 'a log'} by {fit.get('method', self.options.method)}",
                  f"  log: {kind}, {log.steps} steps, {len(log.obs_t)} sightings, {log.minutes:.1f} min"
-                 + (" (the {rows} rows of commands.csv held over steps of {step:.3g} s, the sightings' frame)".format(
-                     **log.held_commands) if log.held_commands is not None else ""),
+                 + (" (the {rows} rows of commands.csv held over {steps:,} steps, median {step:.3g} s, at the "
+                    "sightings' times)".format(**log.held_commands) if log.held_commands is not None else ""),
                  f"  fit: {'converged' if fit.get('converged') else 'NOT converged'} after {fit.get('iterations')} "
                  f"iterations in {fit.get('seconds', 0):.1f} s, log-likelihood {fit.get('log_likelihood', float('nan')):,.1f}",
                  f"  sensor: reading sigma {m.noise_text('reading')} (reading units), bearing sigma "

@@ -18,6 +18,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -25,7 +26,6 @@ from gtsam.symbol_shorthand import X
 
 from casm_graph.fit import turns
 from casm_graph.fit import windows as W
-from casm_graph.fit.outliers import kept, prune
 from casm_graph.fit.residuals import distances, sighting_residuals
 from casm_graph.fit.result import Fit, Progress
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, near_curve, suspect
@@ -340,20 +340,8 @@ def fit_both_curves(log: Log, start: Model | None = None, seed: int = 0, progres
     progress.stage("the sensor curve in 1/d", None)
     other = in_basis(log, first, "inverse_distance", len(start.reading_poly) - 1, seed, progress, marginals, options,
                      max_sensor_degree)
-    keep = better_curve(log, first, other, curve_scores(log, (first, other)), options.sensor_curve)
+    keep = better_curve(log, first, other, sighting_log_likelihood, options.sensor_curve)
     return keep, (other if keep is first else first)
-
-
-def curve_scores(log: Log, fits, effects=()) -> tuple[float, ...]:
-    """:func:`sighting_log_likelihood` of each of ``fits`` (with ``effects``, instances) on the sightings at least one
-    of them explains (not a gross outlier at its fit, :func:`casm_graph.fit.outliers.kept`; all of them when an
-    effect models outliers): under Huber's loss a reading thousands of sigmas off from every curve costs in proportion
-    to its distance over the reading sigma, so one such reading had the curve with the larger sigma win (a floor with
-    one reading times 10,000 took a quintic in 1/d, reading sigma 1.4 times the clean log's), while near sightings
-    only one curve follows are the evidence between them."""
-    keep = np.logical_or.reduce([kept(log, f.model, f.poses, list(effects)) for f in fits])
-    scored = prune(log, ~keep)
-    return tuple(sighting_log_likelihood(scored, f, effects) for f in fits)
 
 
 def curve_in(log: Log, model: Model, poses: np.ndarray, basis: str, degree: int,
@@ -731,7 +719,8 @@ def curve_with_effects(log: Log, out: Fit, alt: Fit, hooked, warm: dict, seed: i
     other = fit_hooked(log, replace(alt, model=alt.model.with_(effects={**alt.model.effects, **warm})), hooked,
                        seed=seed, progress=progress, marginals=marginals, options=options)
     first, other = (out, other) if out.model.reading_basis == "distance" else (other, out)
-    return better_curve(log, first, other, curve_scores(log, (first, other), effects), options.sensor_curve)
+    return better_curve(log, first, other, partial(sighting_log_likelihood, effects=effects), options.sensor_curve,
+                        effects)
 
 
 def fit_with_effects(log: Log, start: Model | None = None, effects=("actuator_lag",), seed: int = 0,

@@ -13,7 +13,8 @@ against the distance would be named ``unexplained:distance``.
 That choice cannot find 1/d from a fit in d that went wrong near the landmarks (from the paper's flat start
 a steep apparent size puts the robot almost on the landmark, and those distances favour d). So when a fit
 in d shows the marks of it (:func:`suspect`), a second calibration starts with the curve in 1/d and the
-two are scored on every sighting, each under its own noise levels (:func:`better_curve`).
+two are scored on the sightings at least one of them explains, each under its own noise levels
+(:func:`better_curve`).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from casm_graph.fit.outliers import kept, prune
 from casm_graph.fit.residuals import distances
 from casm_graph.io.log import Log
 from casm_graph.models.model import Model
@@ -88,11 +90,13 @@ def suspect(model: Model, log: Log, options: SensorCurveOptions = DEFAULTS) -> b
     return n > 0 and (degree.get("fitted", 0) > degree.get("asked", 0) or pruned > options.suspect_pruned * n)
 
 
-def better_curve(log: Log, first, other, scores: tuple[float, float], options: SensorCurveOptions = DEFAULTS):
-    """``other`` (a fit with another sensor curve) when its score (log-likelihood of every sighting of ``log``,
-    each fit under its own noise levels) beats ``first``'s by more than ``options.margin`` plus BIC's half log n per extra
-    coefficient, and its curve differs materially (by more than ``options.material`` of the reading sigma, RMS over the
-    sightings); else ``first``. The choice is recorded in ``fit.sensor_degree`` (``tried``: each curve's score)."""
+def better_curve(log: Log, first, other, score, options: SensorCurveOptions = DEFAULTS, effects=()):
+    """``other`` (a fit with another sensor curve) when its score beats ``first``'s by more than ``options.margin``
+    plus BIC's half log n per extra coefficient, and its curve differs materially (by more than ``options.material``
+    of the reading sigma, RMS over the sightings); else ``first``. ``score(log, fit)`` is a fit's log-likelihood
+    under its own noise levels (``effects``, instances, acting), taken on the sightings :func:`curve_scores`
+    chooses. The choice is recorded in ``fit.sensor_degree`` (``tried``: each curve's score)."""
+    scores = curve_scores(log, (first, other), score, effects)
     ok = np.isfinite(log.obs_reading)
     extra = len(other.model.reading_poly) - len(first.model.reading_poly)
     d = distances(other.poses[log.obs_step], log)[ok]
@@ -104,3 +108,14 @@ def better_curve(log: Log, first, other, scores: tuple[float, float], options: S
              for f, c in zip((first, other), scores)]
     keep.model.fit["sensor_degree"] = {**keep.model.fit.get("sensor_degree", {}), "tried": tried}
     return keep
+
+
+def curve_scores(log: Log, fits, score, effects=()) -> tuple[float, ...]:
+    """``score(log, fit)`` of each of ``fits`` on the sightings at least one of them explains (not a gross outlier
+    at its fit, :func:`casm_graph.fit.outliers.kept`; all of them when ``effects`` model outliers): under Huber's
+    loss a reading thousands of sigmas off every curve costs in proportion to its distance over the reading sigma,
+    so one such reading had the curve with the larger sigma win (a floor with one reading times 10,000 took a
+    quintic in 1/d), while near sightings only one curve follows are the evidence between them."""
+    keep = np.logical_or.reduce([kept(log, f.model, f.poses, list(effects)) for f in fits])
+    scored = prune(log, ~keep)
+    return tuple(score(scored, f) for f in fits)

@@ -42,7 +42,8 @@ class Log:
     truth: np.ndarray | None = None     # (T+1, 4) t, x, y, theta at pose times, when known
     source: str | None = None           # the bundle's directory, when loaded from disk
     command_row: np.ndarray | None = None   # (T,) row of commands.csv each step holds, when rows were held over
-    #                                         several steps (:func:`held_steps`); None: one step per row
+    #                                         several steps (:func:`held_steps`, :func:`sighting_steps`); None: one
+    #                                         step per row
 
     @property
     def steps(self) -> int:
@@ -187,6 +188,8 @@ MAX_MEDIAN_STEP = 600.0     # s: commands held for ten minutes each are not a ve
 MAX_GAP = 86400.0           # s: a day without commands is two logs
 HELD_SPLIT = 2.0            # commands whose median step is this many sightings' frames long are held over frames
 MAX_HELD_STEPS = 5_000_000  # steps such holding may make (46 hours at 30 Hz)
+OFF_GRID = 0.01             # s: sightings a median of more than this from their nearest pose get poses of their own
+ON_GRID = 1e-3             # s: a sighting this close to a pose time is at it
 
 
 def _show(cell: str) -> str:
@@ -339,13 +342,36 @@ def held_steps(t: np.ndarray, obs_t: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rows, t[rows] + (np.arange(len(rows)) - first) * (d / n)[rows]
 
 
+def sighting_steps(t: np.ndarray, obs_t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(step each new step continues, the steps' times) when the sightings lie off the steps' grid (a camera on its
+    own clock): their median distance in time from the nearest pose is more than ``OFF_GRID``. Each distinct
+    sighting time then starts a step of its own, under the command that holds there, so every sighting is seen
+    from the pose of its time; taken to the nearest pose instead, a fixed phase reads as a camera latency and a
+    drifting one as bearing noise growing with the turn rate. Sightings after the last command's median step keep
+    the final pose. None when the sightings are on the grid."""
+    if len(t) < 2 or len(obs_t) == 0:
+        return None
+    pose_t = np.append(t, t[-1] + float(np.median(np.diff(t))))
+    if float(np.median(np.abs(obs_t - pose_t[nearest_index(pose_t, obs_t)]))) <= OFF_GRID:
+        return None
+    u = np.unique(obs_t)
+    u = u[(u > t[0]) & (u < pose_t[-1]) & (np.abs(u - pose_t[nearest_index(pose_t, u)]) > ON_GRID)]
+    times = np.union1d(t, u)
+    if len(times) > MAX_HELD_STEPS:
+        raise LogError(f"observations.csv: sightings at {len(u):,} times off the commands' grid would make "
+                       f"{len(times):,} steps; write one command row per camera frame, or split the log")
+    return np.searchsorted(t, times, side="right") - 1, times
+
+
 def _truth_at_poses(truth: np.ndarray, t: np.ndarray) -> np.ndarray | None:
     """truth.csv at other times than the poses' (one per command step plus the final one): interpolated
-    at the pose times when it covers them, else left out (it is information only, never fitted)."""
+    at the pose times when it covers them (the final pose, whose time is a median step after the last command's,
+    may lie up to a step past the table's end and take its last row), else left out (it is information only,
+    never fitted)."""
     step = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
     pose_t = np.append(t, t[-1] + step)
     tt = truth[:, 0]
-    if len(tt) < 2 or np.any(np.diff(tt) <= 0) or pose_t[0] < tt[0] or pose_t[-1] > tt[-1]:
+    if len(tt) < 2 or np.any(np.diff(tt) <= 0) or pose_t[0] < tt[0] or pose_t[-2] > tt[-1] or pose_t[-1] > tt[-1] + step:
         return None
     theta = np.interp(pose_t, tt, np.unwrap(truth[:, 3]))
     return np.column_stack([pose_t, np.interp(pose_t, tt, truth[:, 1]), np.interp(pose_t, tt, truth[:, 2]),
@@ -418,12 +444,6 @@ def load(directory: str | Path) -> Log:
         i = out[0]
         raise LogError(f"observations.csv, row {i + 1}, column 't': time {ot[i]:g} lies outside the "
                        f"commands ({t[0]:g} to {t[-1] + step:g})")
-    row = None
-    if held is not None:
-        row, t = held
-        action = None if action is None else action[row]
-        controls = None if controls is None else controls[row]
-
     attempted: dict[int, np.ndarray] = {}
     if (d / "actions.csv").is_file():
         ac = _Table(d / "actions.csv")
@@ -440,12 +460,34 @@ def load(directory: str | Path) -> Log:
         truth = np.column_stack([tr.numbers(c, bound=b, unit=u) for c, b, u in
                                  (("t", MAX_TIME, " s"), ("x", MAX_POSITION, " m"), ("y", MAX_POSITION, " m"),
                                   ("theta", MAX_HEADING, " rad"))])
-        if len(truth) != len(t) + 1 or row is not None:
-            truth = _truth_at_poses(truth, t)
+    log = Log(landmark_ids=ids, landmark_xy=xy, t=t, action=action, controls=controls,
+              control_names=names, obs_t=ot, obs_landmark=ol, obs_reading=reading, obs_bearing=bearing, obs_pan=pan,
+              attempted=attempted, truth=None if truth is None or len(truth) != len(t) + 1 else truth,
+              source=str(d))
+    return placed(log, truth)
 
-    return Log(landmark_ids=ids, landmark_xy=xy, t=t, action=action, controls=controls,
-               control_names=names, obs_t=ot, obs_landmark=ol, obs_reading=reading,
-               obs_bearing=bearing, obs_pan=pan, attempted=attempted, truth=truth, source=str(d), command_row=row)
+
+def placed(log: Log, truth: np.ndarray | None = None) -> Log:
+    """``log`` (one step per row of commands.csv) with its steps where its sightings need them: rows held over the
+    sightings' frame (:func:`held_steps`), then a step at each sighting time off the grid (:func:`sighting_steps`);
+    ``log`` itself when neither applies. ``truth``: the (t, x, y, theta) table interpolated at the new pose times
+    (default ``log.truth``)."""
+    truth = log.truth if truth is None else truth
+    t, row = log.t, None
+    held = held_steps(t, log.obs_t)
+    if held is not None:
+        row, t = held
+    off = sighting_steps(t, log.obs_t)
+    if off is not None:
+        step_row, t = off
+        row = step_row if row is None else row[step_row]
+    if row is None:
+        if truth is not None and len(truth) != len(t) + 1:
+            return replace(log, truth=_truth_at_poses(truth, t))
+        return log
+    return replace(log, t=t, action=None if log.action is None else log.action[row],
+                   controls=None if log.controls is None else log.controls[row],
+                   truth=None if truth is None else _truth_at_poses(truth, t), command_row=row)
 
 
 # --------------------------------------------------------------------------- writing

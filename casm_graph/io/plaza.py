@@ -19,6 +19,7 @@ from casm_graph.io.log import (
     MAX_TIME,
     Log,
     LogError,
+    placed,
     wrap,
 )
 from casm_graph.io.log import write as write_bundle
@@ -212,10 +213,11 @@ def _tell(info: dict) -> None:
 
 
 def load_plaza(path: str | Path, minutes: float | None = None) -> Log:
-    """The data set (its first ``minutes`` when given) as a :class:`Log` with truth; drops told on stderr."""
+    """The data set (its first ``minutes`` when given) as a :class:`Log` with truth, its steps placed as loading the
+    imported bundle places them (:func:`casm_graph.io.log.placed`); drops told on stderr."""
     log, info = read_plaza(path, minutes)
     _tell(info)
-    return log
+    return placed(log)
 
 
 def import_plaza(path: str | Path, out: str | Path, force: bool = False,

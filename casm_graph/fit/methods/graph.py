@@ -182,8 +182,8 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     progress.stage("the sensor curve in 1/d", None)
     other = _fit(log, start.with_(reading_basis="inverse_distance"), seed, progress, marginals, mixture, options,
                  max_sensor_degree)
-    return better_curve(log, first, other, (sighting_log_likelihood(log, first), sighting_log_likelihood(log, other)),
-                        options.sensor_curve)
+    return better_curve(log, first, other, sighting_log_likelihood, options.sensor_curve,
+                        [FalseDetections()] if mixture else ())
 
 
 def sighting_log_likelihood(log: Log, fit: Fit) -> float:
