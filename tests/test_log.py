@@ -1,4 +1,5 @@
 """Log bundles: round trip, and every bad input of INTERFACE section 1 rejected with file, row, column."""
+import json
 import shutil
 
 import numpy as np
@@ -152,3 +153,24 @@ def test_sightings_off_the_commands_grid_get_poses_of_their_own(tmp_path):
     assert f"the {log.steps} rows of commands.csv held" in cg.calibrate(back, seed=0).summary()
     jitter = log.obs_t + np.random.default_rng(0).uniform(-0.008, 0.008, len(log.obs_t))
     assert sighting_steps(log.t, np.sort(jitter)) is None
+
+
+def test_observations_written_landmark_by_landmark_are_taken_in_time_order(short_bundle, tmp_path, capsys):
+    """A generator that writes each landmark's sightings in turn: the rows are sorted by time (stably), with one
+    warning naming the first row out of order, and the log calibrates as the time-ordered one."""
+    d, log, _ = short_bundle
+    shutil.copytree(d, tmp_path / "by_landmark")
+    lines = (d / "observations.csv").read_text().splitlines()
+    rows = sorted(lines[1:], key=lambda r: int(r.split(",")[1]))           # stable: time order within a landmark
+    (tmp_path / "by_landmark" / "observations.csv").write_text("\n".join([lines[0]] + rows) + "\n")
+    with pytest.warns(RuntimeWarning, match=r"observations.csv, row \d+, column 't'.*taken in time order"):
+        back = load(tmp_path / "by_landmark")
+    order = np.lexsort((log.obs_landmark, log.obs_t))                        # within a time, landmark by landmark
+    np.testing.assert_allclose(back.obs_t, log.obs_t[order], atol=1e-9)
+    np.testing.assert_array_equal(back.obs_landmark, log.obs_landmark[order])
+    np.testing.assert_allclose(back.obs_reading, log.obs_reading[order], atol=1e-8)
+    assert main(["calibrate", str(tmp_path / "by_landmark"), "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    assert capsys.readouterr().err.count("taken in time order") == 1
+    assert main(["calibrate", str(d), "--out", str(tmp_path / "run0"), "--quiet"]) == 0
+    fits = [json.loads((tmp_path / r / "model.json").read_text())["fit"] for r in ("run", "run0")]
+    assert fits[0]["log_likelihood"] == pytest.approx(fits[1]["log_likelihood"], rel=1e-6)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+import warnings
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -301,6 +302,18 @@ def _increasing(tab: _Table, t: np.ndarray, strict: bool) -> None:
                        f"({t[i - 1]:g} then {t[i]:g})")
 
 
+def in_time_order(t: np.ndarray) -> np.ndarray | None:
+    """The stable order that sorts observations.csv's rows by time, None when they already are (a generator that
+    writes each landmark's sightings in turn); a RuntimeWarning names the first row out of order."""
+    back = np.flatnonzero(np.diff(t) < 0)
+    if len(back) == 0:
+        return None
+    i = int(back[0]) + 1
+    warnings.warn(f"observations.csv, row {i + 1}, column 't': time {t[i]:g} comes after {t[i - 1]:g}; "
+                  f"the {len(t):,} rows are taken in time order", RuntimeWarning, stacklevel=3)
+    return np.argsort(t, kind="stable")
+
+
 def _plausible_step(tab: _Table, t: np.ndarray) -> None:
     """Times in seconds: a median command step far outside 0.1 ms-10 min, or a gap of more than a day, is wrong
     units, a scaled column or two logs in one (and would make the knot layout of a continuous log enormous)."""
@@ -425,7 +438,6 @@ def load(directory: str | Path) -> Log:
     ob.require("t", "landmark", "reading", "bearing")
     ob.nonempty()
     ot = ob.numbers("t", bound=MAX_TIME, unit=" s")
-    _increasing(ob, ot, strict=False)
     ol = ob.integers("landmark")
     known = set(ids.tolist())
     for i, k in enumerate(ol):
@@ -437,12 +449,17 @@ def load(directory: str | Path) -> Log:
     pan = ob.numbers("pan", allow_empty=True, bound=MAX_ANGLE, unit=" rad") if ob.has("pan") else None
     if np.all(np.isnan(reading) & np.isnan(bearing)):
         raise LogError("observations.csv: every row has both 'reading' and 'bearing' empty")
+    order = in_time_order(ot)
+    if order is not None:
+        ot, ol, reading, bearing = ot[order], ol[order], reading[order], bearing[order]
+        pan = None if pan is None else pan[order]
     step = np.median(np.diff(t)) if len(t) > 1 else 1.0
     held = held_steps(t, ot)                 # the last row then holds until the last sighting: no bound after it
     out = np.flatnonzero((ot < t[0] - step / 2) | ((ot > t[-1] + 1.5 * step) & (held is None)))
     if len(out):
         i = out[0]
-        raise LogError(f"observations.csv, row {i + 1}, column 't': time {ot[i]:g} lies outside the "
+        row = i if order is None else int(order[i])
+        raise LogError(f"observations.csv, row {row + 1}, column 't': time {ot[i]:g} lies outside the "
                        f"commands ({t[0]:g} to {t[-1] + step:g})")
     attempted: dict[int, np.ndarray] = {}
     if (d / "actions.csv").is_file():
