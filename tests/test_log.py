@@ -174,3 +174,24 @@ def test_observations_written_landmark_by_landmark_are_taken_in_time_order(short
     assert main(["calibrate", str(d), "--out", str(tmp_path / "run0"), "--quiet"]) == 0
     fits = [json.loads((tmp_path / r / "model.json").read_text())["fit"] for r in ("run", "run0")]
     assert fits[0]["log_likelihood"] == pytest.approx(fits[1]["log_likelihood"], rel=1e-6)
+
+
+def test_a_written_nan_in_an_optional_column_is_not_measured(short_bundle, tmp_path):
+    """numpy's ``savetxt`` writes ``nan`` where a component was not measured: in reading, bearing and pan that
+    reads as the empty cell does (in a required column it stays an error, above)."""
+    d, _, _ = short_bundle
+    lines = (d / "observations.csv").read_text().splitlines()
+    empty, nan = [lines[0]], [lines[0]]
+    for k, row in enumerate(lines[1:]):
+        cells = row.split(",")
+        cells[2 + k % 2] = ""                            # every row keeps one of reading and bearing
+        empty.append(",".join(cells))
+        cells[2 + k % 2] = ("nan", "NaN")[k % 2]
+        nan.append(",".join(cells))
+    for name, rows in (("empty", empty), ("nan", nan)):
+        shutil.copytree(d, tmp_path / name)
+        (tmp_path / name / "observations.csv").write_text("\n".join(rows) + "\n")
+    a, b = load(tmp_path / "empty"), load(tmp_path / "nan")
+    assert np.isnan(a.obs_reading).sum() == len(a.obs_t) - len(a.obs_t) // 2
+    np.testing.assert_array_equal(a.obs_reading, b.obs_reading)
+    np.testing.assert_array_equal(a.obs_bearing, b.obs_bearing)

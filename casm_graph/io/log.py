@@ -173,6 +173,7 @@ def wrap(a):
 # Plain ASCII decimals only: Python's float() also takes '1_350', non-ASCII digits and 'infinity'.
 _NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
 _INTEGER = re.compile(r"[+-]?[0-9]+(?:\.0*)?", re.ASCII)
+_NAN = re.compile(r"[+-]?nan", re.ASCII | re.IGNORECASE)
 _NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.ASCII | re.IGNORECASE)
 _BLANK = " \t\r\n"
 _INT64_MAX = 2 ** 63 - 1
@@ -241,12 +242,13 @@ class _Table:
     def numbers(self, col: str, allow_empty: bool = False, bound: float | None = None,
                 unit: str = "") -> np.ndarray:
         """Column as floats: plain ASCII decimals only (``_NUMBER``), finite and, with ``bound``, of
-        magnitude at most ``bound``; empty cells are NaN when allowed, anything else is an error."""
+        magnitude at most ``bound``; empty cells are NaN when allowed, and so is a written NaN there (numpy's
+        ``savetxt`` writes ``nan`` for a component not measured); anything else is an error."""
         j = self.header.index(col)
         out = np.empty(len(self.rows))
         for i, r in enumerate(self.rows):
             cell = r[j].strip(_BLANK)
-            if cell == "":
+            if cell == "" or (allow_empty and _NAN.fullmatch(cell)):
                 if allow_empty:
                     out[i] = np.nan
                     continue
