@@ -195,3 +195,20 @@ def test_a_written_nan_in_an_optional_column_is_not_measured(short_bundle, tmp_p
     assert np.isnan(a.obs_reading).sum() == len(a.obs_t) - len(a.obs_t) // 2
     np.testing.assert_array_equal(a.obs_reading, b.obs_reading)
     np.testing.assert_array_equal(a.obs_bearing, b.obs_bearing)
+
+
+def test_a_bundle_written_by_numpy_savetxt_reads_alike(short_bundle, tmp_path):
+    """Every file written as ``np.savetxt(..., delimiter=",", header=..., comments="")`` does by default: each
+    number as ``%.18e`` (ids too: 3.000000000000000000e+00) and a component not measured as ``nan``."""
+    d, _, _ = short_bundle
+    out = tmp_path / "savetxt"
+    out.mkdir()
+    for f in d.glob("*.csv"):
+        lines = f.read_text().splitlines()
+        rows = [[float(c) if c != "" else np.nan for c in r.split(",")] for r in lines[1:]]
+        np.savetxt(out / f.name, np.array(rows), delimiter=",", header=lines[0], comments="")
+    a, b = load(d), load(out)
+    assert "e+00" in (out / "observations.csv").read_text().splitlines()[1].split(",")[1]
+    for name in ("t", "action", "obs_t", "obs_landmark", "obs_reading", "obs_bearing", "landmark_ids",
+                 "landmark_xy", "truth"):
+        np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, err_msg=name)

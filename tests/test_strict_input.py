@@ -132,7 +132,7 @@ def test_ids_are_exact_integers(bundle, tmp_path):
 
 
 @pytest.mark.parametrize("cell,words", [("9223372036854775808", "64 bits"), ("-99999999999999999999", "64 bits"),
-                                        ("3.5", "not an integer"), ("1e3", "not an integer"),
+                                        ("3.5", "not an integer"), ("2.5e0", "not an integer"), ("1e25", "64 bits"),
                                         ("\u0663", "not a number"), ("1_0", "not a number")])
 def test_bad_ids(bundle, tmp_path, capsys, cell, words):
     d = edited(bundle, tmp_path / "log", "commands.csv", set_cell(4, "action", cell))

@@ -10,6 +10,7 @@ import math
 import re
 import warnings
 from dataclasses import dataclass, field, replace
+from decimal import Decimal
 from functools import cached_property
 from pathlib import Path
 
@@ -271,8 +272,8 @@ class _Table:
         return out
 
     def integers(self, col: str) -> np.ndarray:
-        """Column as exact integers (ids): ASCII digits with an optional sign (``7.0`` allowed), parsed
-        as int, never through float, and within int64."""
+        """Column as exact integers (ids): ASCII digits with an optional sign (``7.0`` and ``7.0e+00`` allowed),
+        parsed as int, never through float, and within int64."""
         j = self.header.index(col)
         out = np.empty(len(self.rows), np.int64)
         for i, r in enumerate(self.rows):
@@ -280,13 +281,20 @@ class _Table:
             where = f"{self.name}, row {i + 1}, column '{col}'"
             if cell == "":
                 raise LogError(f"{where}: empty cell where a number is required")
-            if not _INTEGER.fullmatch(cell):
-                if _NUMBER.fullmatch(cell):
+            if _INTEGER.fullmatch(cell):
+                v = int(cell.split(".")[0])
+            elif _NUMBER.fullmatch(cell):          # 3.000000000000000000e+00: numpy's savetxt writes ids so
+                d = Decimal(cell)
+                if d.adjusted() > 19:
+                    raise LogError(f"{where}: {_show(cell)} is out of range (ids must fit in 64 bits, "
+                                   f"|id| <= {_INT64_MAX})")
+                if d != d.to_integral_value():
                     raise LogError(f"{where}: {_show(cell)} is not an integer")
-                if _NON_FINITE.fullmatch(cell):
-                    raise LogError(f"{where}: {_show(cell)} is not a finite number")
+                v = int(d)
+            elif _NON_FINITE.fullmatch(cell):
+                raise LogError(f"{where}: {_show(cell)} is not a finite number")
+            else:
                 raise LogError(f"{where}: {_show(cell)} is not a number (expected an integer id such as 7)")
-            v = int(cell.split(".")[0])
             if not -_INT64_MAX <= v <= _INT64_MAX:
                 raise LogError(f"{where}: {_show(cell)} is out of range (ids must fit in 64 bits, "
                                f"|id| <= {_INT64_MAX})")
