@@ -198,15 +198,15 @@ def test_a_written_nan_in_an_optional_column_is_not_measured(short_bundle, tmp_p
 
 
 def test_a_bundle_written_by_numpy_savetxt_reads_alike(short_bundle, tmp_path):
-    """Every file written as ``np.savetxt(..., delimiter=",", header=..., comments="")`` does by default: each
-    number as ``%.18e`` (ids too: 3.000000000000000000e+00) and a component not measured as ``nan``."""
+    """Every file written as ``np.savetxt(..., delimiter=",", header=...)`` does by default: the header after
+    "# ", each number as ``%.18e`` (ids too: 3.000000000000000000e+00) and a component not measured as ``nan``."""
     d, _, _ = short_bundle
     out = tmp_path / "savetxt"
     out.mkdir()
     for f in d.glob("*.csv"):
         lines = f.read_text().splitlines()
         rows = [[float(c) if c != "" else np.nan for c in r.split(",")] for r in lines[1:]]
-        np.savetxt(out / f.name, np.array(rows), delimiter=",", header=lines[0], comments="")
+        np.savetxt(out / f.name, np.array(rows), delimiter=",", header=lines[0])      # "# t,landmark,..."
     a, b = load(d), load(out)
     assert "e+00" in (out / "observations.csv").read_text().splitlines()[1].split(",")[1]
     for name in ("t", "action", "obs_t", "obs_landmark", "obs_reading", "obs_bearing", "landmark_ids",

@@ -219,6 +219,7 @@ class _Table:
         if not rows:
             raise LogError(f"{path.name}: empty file (no header row)")
         self.header = [h.strip() for h in rows[0]]
+        self.header[0] = self.header[0].lstrip("#").strip()     # numpy's savetxt writes its header as "# t,..."
         self.rows = rows[1:]
         for i, r in enumerate(self.rows, start=1):
             if len(r) < len(self.header):
