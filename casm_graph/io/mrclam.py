@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from casm_graph.io.log import Log, LogError, wrap
+from casm_graph.io.log import Log, LogError, placed, wrap
 from casm_graph.io.log import write as write_bundle
 
 WORKPLACE_DATA = Path("/work/shared/data/mrclam7")
@@ -65,7 +65,14 @@ def interpolate_poses(t_src: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np
 
 
 def load_robot(directory: str | Path, robot: int) -> tuple[Log, dict]:
-    """One robot's files as a :class:`Log` (continuous ``v,w`` commands, truth at pose times)."""
+    """One robot's files as a :class:`Log` (continuous ``v,w`` commands, truth at pose times), its steps placed as
+    loading the imported bundle places them (:func:`casm_graph.io.log.placed`), and what was kept."""
+    log, info = read_robot(directory, robot)
+    return placed(log), info
+
+
+def read_robot(directory: str | Path, robot: int) -> tuple[Log, dict]:
+    """One robot's files as a :class:`Log`, a step per odometry row, and what was kept."""
     d = Path(directory)
     if not d.is_dir():
         raise LogError(f"{d}: not a directory (expected the MRCLAM dataset's .dat files)")
@@ -112,8 +119,9 @@ def load_robot(directory: str | Path, robot: int) -> tuple[Log, dict]:
 
 
 def import_robot(directory: str | Path, robot: int, out: str | Path) -> tuple[Log, dict]:
-    """Read one robot and write its bundle to ``out`` (nothing written when the input is bad)."""
-    log, info = load_robot(directory, robot)
-    d = write_bundle(log, out)
+    """Read one robot and write its bundle to ``out`` (nothing written when the input is bad); the log as
+    :func:`load_robot` gives it."""
+    raw, info = read_robot(directory, robot)
+    d = write_bundle(raw, out)
     (Path(d) / "mrclam.json").write_text(json.dumps(info, indent=2))
-    return log, info
+    return placed(raw), info
