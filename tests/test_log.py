@@ -212,3 +212,25 @@ def test_a_bundle_written_by_numpy_savetxt_reads_alike(short_bundle, tmp_path):
     for name in ("t", "action", "obs_t", "obs_landmark", "obs_reading", "obs_bearing", "landmark_ids",
                  "landmark_xy", "truth"):
         np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=1e-12, err_msg=name)
+
+
+def test_sightings_outside_the_commands_are_set_aside_with_a_warning(short_bundle, tmp_path, capsys):
+    """A camera that starts before the first command or runs on after the last: those sightings are set aside with
+    one warning (count, first row), the rest calibrate; a log with no sighting inside the span is still refused."""
+    d, log, _ = short_bundle
+    shutil.copytree(d, tmp_path / "cut")
+    lines = (d / "commands.csv").read_text().splitlines()
+    (tmp_path / "cut" / "commands.csv").write_text("\n".join([lines[0]] + lines[31:-90]) + "\n")
+    with pytest.warns(RuntimeWarning, match=r"observations.csv: [\d,]+ sighting\(s\) outside the commands' span.*"
+                                            r"the first at row 1 .*set aside"):
+        back = load(tmp_path / "cut")
+    t0, t1 = log.t[30], log.t[-91]
+    step = float(np.median(np.diff(log.t)))
+    inside = (log.obs_t >= t0 - step / 2) & (log.obs_t <= t1 + 1.5 * step)
+    assert 0 < inside.sum() < len(log.obs_t) and len(back.obs_t) == inside.sum()
+    np.testing.assert_allclose(back.obs_t, log.obs_t[inside], atol=1e-9)
+    assert main(["calibrate", str(tmp_path / "cut"), "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    assert capsys.readouterr().err.count("set aside") == 1
+    (tmp_path / "cut" / "commands.csv").write_text(f"{lines[0]}\n500,1\n500.1,1\n500.2,1\n")
+    with pytest.raises(LogError, match="every sighting lies outside the commands' span"):
+        load(tmp_path / "cut")

@@ -458,20 +458,26 @@ def load(directory: str | Path) -> Log:
     reading = ob.numbers("reading", allow_empty=True, bound=MAX_READING)
     bearing = ob.numbers("bearing", allow_empty=True, bound=MAX_ANGLE, unit=" rad")
     pan = ob.numbers("pan", allow_empty=True, bound=MAX_ANGLE, unit=" rad") if ob.has("pan") else None
-    if np.all(np.isnan(reading) & np.isnan(bearing)):
-        raise LogError("observations.csv: every row has both 'reading' and 'bearing' empty")
     order = in_time_order(ot)
     if order is not None:
         ot, ol, reading, bearing = ot[order], ol[order], reading[order], bearing[order]
         pan = None if pan is None else pan[order]
     step = np.median(np.diff(t)) if len(t) > 1 else 1.0
     held = held_steps(t, ot)                 # the last row then holds until the last sighting: no bound after it
-    out = np.flatnonzero((ot < t[0] - step / 2) | ((ot > t[-1] + 1.5 * step) & (held is None)))
-    if len(out):
-        i = out[0]
+    out = (ot < t[0] - step / 2) | ((ot > t[-1] + 1.5 * step) & (held is None))
+    if out.any():
+        i = int(np.argmax(out))
         row = i if order is None else int(order[i])
-        raise LogError(f"observations.csv, row {row + 1}, column 't': time {ot[i]:g} lies outside the "
-                       f"commands ({t[0]:g} to {t[-1] + step:g})")
+        span = f"the commands' span, {t[0]:g} to {t[-1] + step:g} s"
+        if out.all():
+            raise LogError(f"observations.csv: every sighting lies outside {span} (row {row + 1}: time {ot[i]:g})")
+        warnings.warn(f"observations.csv: {int(out.sum()):,} sighting(s) outside {span}, the first at row {row + 1} "
+                      f"(time {ot[i]:g}), set aside", RuntimeWarning, stacklevel=2)
+        keep = ~out
+        ot, ol, reading, bearing = ot[keep], ol[keep], reading[keep], bearing[keep]
+        pan = None if pan is None else pan[keep]
+    if np.all(np.isnan(reading) & np.isnan(bearing)):
+        raise LogError("observations.csv: every row has both 'reading' and 'bearing' empty")
     attempted: dict[int, np.ndarray] = {}
     if (d / "actions.csv").is_file():
         ac = _Table(d / "actions.csv")
