@@ -8,8 +8,10 @@ import csv
 import io
 import json
 import math
+import re
 import tempfile
 from contextlib import redirect_stderr
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -70,14 +72,21 @@ def strict_number(cell: str):
 
 
 def strict_id(cell: str):
-    """Reference integer id: optional sign, ASCII digits, optionally '.' and zeros; within int64."""
+    """Reference integer id: optional sign, ASCII digits, optionally '.' and digits and an exponent (numpy's
+    savetxt writes 3.000000000000000000e+00), of an exactly integral value within int64."""
     s = cell.strip(" \t\r\n")
-    head, _, frac = s.partition(".")
-    body = head[1:] if head[:1] in ("+", "-") else head
-    if not body or any(c not in "0123456789" for c in body) or any(c != "0" for c in frac):
+    if not re.fullmatch(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", s, re.ASCII):
         return None
-    v = int(head)
+    d = Decimal(s)
+    if d.adjusted() > 19 or d != d.to_integral_value():
+        return None
+    v = int(d)
     return v if abs(v) <= 2 ** 63 - 1 else None
+
+
+def not_measured(cell: str) -> bool:
+    """An optional column's cell that says the component was not measured: empty, or NaN written out."""
+    return cell.strip(" \t\r\n").lstrip("+-").lower() in ("", "nan")
 
 
 def write_csv(path: Path, rows):
@@ -176,13 +185,13 @@ def test_valid_bundle_with_one_column_of_junk_readings(readings):
         obs = [["t", "landmark", "reading", "bearing"]] + [["0.1", str(i % 3), r, "0.1"]
                                                            for i, r in enumerate(readings)]
         write_csv(d / "observations.csv", obs)
-        ref = [None if r.strip(" \t\r\n") == "" else strict_number(r) for r in readings]
+        ref = [None if not_measured(r) else strict_number(r) for r in readings]
         try:
             log = load(d)
         except LogError:
             return
         for r, v, got in zip(readings, ref, log.obs_reading):
-            if r.strip(" \t\r\n") == "":
+            if not_measured(r):
                 assert np.isnan(got)
             else:
                 assert v is not None and got == v, (r, got)
