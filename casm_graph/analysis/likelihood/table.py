@@ -341,9 +341,12 @@ class MarginalLikelihood(NoiseLikelihood):
 
     def _linearise(self) -> None:
         pb, st = self.problem, self.state
-        # unit noise everywhere: rows() then returns raw residuals and Jacobians
+        # unit noise levels: rows() then returns raw sighting rows, and motion rows whitened by each segment's
+        # length factor only (a step twice the median's is trusted half as much, as the calibration has it)
         keep = (pb.motion_sigma, pb.reading_sigma, pb.bearing_sigma, pb.r_scale, pb.weight)
-        pb.motion_sigma = np.ones_like(pb.motion_sigma)
+        factor = pb.motion_sigma / np.asarray(self.model.motion_noise, float)[None, :]
+        self.const = -float(np.sum(np.log(factor)))
+        pb.motion_sigma = factor
         pb.reading_sigma = pb.bearing_sigma = 1.0
         pb.r_scale, pb.weight = np.ones_like(pb.r_scale), np.ones_like(pb.weight)
         try:
@@ -448,7 +451,7 @@ class MarginalLikelihood(NoiseLikelihood):
         lobs, wo = self.observation_terms(sr, sb, th)
         wm = 1.0 / mot ** 2
         lmot = float(-0.5 * np.sum(self.motion_ss * wm) - self.n_steps * np.sum(np.log(mot))
-                     - 1.5 * self.n_steps * LOG2PI)
+                     - 1.5 * self.n_steps * LOG2PI + self.const)
         return lmot + lobs, wm, wo
 
     def reduce(self, x):
