@@ -719,8 +719,8 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     searching as ``options`` say). An ``unexplained:<covariate>`` verdict gets the proposal; so does ``none``
     when the regression finds terms that pass its own test, and the verdict becomes ``unexplained:`` the strongest
     term's covariate: the covariate tests bin one covariate at a time and miss a dependence on heading that the
-    trajectory's smoothing spreads thin, which a term such as ``v_forward*sin(heading)`` catches. That last test
-    leaves out the oscillations in time: the best of forty periods passed |t| = 5 on slow drift of effect-free
+    trajectory's smoothing spreads thin, which a term such as ``v_forward*sin(heading)`` catches, when its strongest
+    term reaches ``options.last_test_t``. That last test leaves out the oscillations in time: the best of forty periods passed |t| = 5 on slow drift of effect-free
     smoothed trajectories, and a time dependence that matters shows in the covariate tests' time bins.
 
     Terms that pass are a residual structure too: a candidate of ``cands`` with delta BIC at most ``support``
@@ -744,6 +744,8 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
             f"The residuals point to {c.effect}: adding it lowers BIC by {-c.delta_bic:.1f}, and a sparse regression "
             f"of the motion residuals finds the {axis} residuals depending on {cov} (|t| >= {options.min_t:g}), the "
             f"structure it is built for. {c.explanation}"], {}
+    if max(abs(v) for f in found["axes"].values() for v in f["t_values"].values()) < options.last_test_t:
+        return verdict_name, words, {}
     cov = terms[0][1]
     return f"unexplained:{cov}", [
         "No catalog effect is supported and no single covariate's bins show material structure, but a sparse "

@@ -32,6 +32,9 @@ class ProposalOptions:
 
     block_s: float = 1.0          # s of residuals averaged into one regression row
     min_t: float = 5.0            # least |t| of a kept term: high, for the library's many tries
+    last_test_t: float = 6.0      # a ``none`` verdict turns ``unexplained`` on the proposal alone only when its
+    #                               strongest term reaches this |t| (the independent world's heading effects: 11.4
+    #                               and 21.8; an omni world's lag, once added, left a v_lateral*sin(heading) at 5.3)
     hac_s: float = 20.0           # s of lags the Newey-West covariance spans (smoothed residuals drift slowly)
     min_r2: float = 0.02          # least share of the block-mean variance the proposal must explain
     shortest_period: float = 30.0  # s: the fastest oscillation in time the library tries
