@@ -720,8 +720,9 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     when the regression finds terms that pass its own test, and the verdict becomes ``unexplained:`` the strongest
     term's covariate: the covariate tests bin one covariate at a time and miss a dependence on heading that the
     trajectory's smoothing spreads thin, which a term such as ``v_forward*sin(heading)`` catches, when its strongest
-    term reaches ``options.last_test_t``. That last test leaves out the oscillations in time: the best of forty periods passed |t| = 5 on slow drift of effect-free
-    smoothed trajectories, and a time dependence that matters shows in the covariate tests' time bins.
+    term reaches ``options.last_test_t``. That last test leaves out the oscillations in time: the best of forty
+    periods passed |t| = 5 on slow drift of effect-free smoothed trajectories, and a time dependence that matters
+    shows in the covariate tests' time bins.
 
     Terms that pass are a residual structure too: a candidate of ``cands`` with delta BIC at most ``support``
     whose held-out score was not measured (continuous commands) and that ``explains`` (by name) a term's axis and
