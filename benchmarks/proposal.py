@@ -43,6 +43,8 @@ def one(effect: str, seed: int, minutes: float, kind: str = "table") -> dict:
     diag = cg.diagnose(log, cal)
     row = {"effect": effect, "seed": seed, "strength": truth["strength"], "geometry": truth["geometry"],
            "verdict": diag.verdict, "proposal": diag.proposal.get("equation", []),
+           "strongest_t": max((abs(v) for f in diag.proposal.get("axes", {}).values() for v in f["t_values"].values()),
+                              default=None),
            "position_rms": [position_rms(cal, log)], "heading_rms": [heading_rms(cal, log)]}
     if diag.proposal:
         cal2 = cg.calibrate(log, effects=[diag.proposal_effect()])
@@ -64,7 +66,8 @@ def main():
     for effect in a.effects:
         for seed in a.seeds:
             row = one(effect, seed, a.minutes, a.kind)
-            print(f"{effect} seed {seed} (s={row['strength']}): {row['verdict']}; proposal {row['proposal']}; "
+            print(f"{effect} seed {seed} (s={row['strength']}): {row['verdict']}; proposal {row['proposal']} "
+                  f"(strongest |t| {row['strongest_t']}); "
                   f"fitted {row.get('fitted')}; position RMS {[round(x, 4) for x in row['position_rms']]}; "
                   f"heading RMS {[round(x, 4) for x in row['heading_rms']]}; "
                   f"after {row.get('verdict_after')}", flush=True)
