@@ -38,10 +38,6 @@ from casm_graph.models.model import Model
 HEADING_AGREEMENT = 0.9      # ranges only: chained headings agreeing less than this make the start doubtful
 HEADING_WARNING = ("ranges alone place this robot's headings poorly ({}): the model may be wrong; bearings, "
                    "longer runs of each action or more precise ranges fix the headings better")
-LOOSE_POSITION = 0.05       # one channel: a median posterior position std beyond this share of the field is warned of
-POSITION_WARNING = ("with one sensor channel this log places the robot only to about {:.2g} m (median posterior "
-                    "position std, {:.0%} of the landmarks' extent): the model rests on little; both channels, more "
-                    "precise sightings or a longer log pin it down")
 
 
 @dataclass(frozen=True)
@@ -246,10 +242,6 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
         ccov = m.param_cov[nv:, nv:].copy()
         model = model.with_(velocity_std=vstd, reading_poly_std=np.sqrt(np.diag(ccov)), reading_poly_cov=ccov)
         pose_std = world_std(poses, pose_std, cov_xy)
-        spread = float(np.median(np.hypot(pose_std[:, 0], pose_std[:, 1])))
-        extent = float(np.ptp(log.landmark_xy, axis=0).max())
-        if len(model.channels) == 1 and spread > LOOSE_POSITION * extent:
-            warnings.warn(POSITION_WARNING.format(spread, spread / extent), RuntimeWarning, stacklevel=2)
     ll = log_likelihood(final_cost, full, log, model)
     model = model.with_(distance_range=(float(d.min()), float(d.max())) if len(d) else (0.0, 0.0),
                         fit={"method": "graph", "iterations": iterations,
