@@ -188,6 +188,11 @@ def test_verdict_rule():
     assert D.verdict([cand("actuator_lag", -50, 10), cand("battery_fade", -20, 5)], [strong])[0] == "actuator_lag"
     assert D.verdict([cand("actuator_lag", -50, -1)], [])[0] == "none"          # no held-out gain
     assert D.verdict([cand("actuator_lag", -5, 3)], [])[0] == "none"            # BIC not convincing
+    # the none verdict's words name what lowered BIC without a second line (they said "every delta BIC above -10")
+    words = " ".join(D.verdict([cand("surface_friction", -2327.0, float("nan")), cand("actuator_lag", -5, 3)], [])[1])
+    assert "surface_friction (delta BIC -2327.0) lower BIC, but no second line agrees" in words
+    assert "actuator_lag" not in words and "above" not in words
+    assert "lowers BIC by more than 10" in " ".join(D.verdict([cand("actuator_lag", -5, 3)], [])[1])
     assert D.verdict([cand("actuator_lag", 3, float("nan"))], [strong])[0] == "unexplained:heading"
     # a held-out loss is outweighed only when the candidate was built for a strong structure
     lens = {"channel": "reading", "name": "image_angle", "strength": 0.04, "p": 1e-30, "kind": "mean"}
@@ -441,7 +446,7 @@ def test_the_evidence_a_verdict_needs_is_an_option():
     cands = [cand("actuator_lag", -15, 3), cand("camera_latency", -12, 2)]
     assert D.verdict(cands, [])[0] == "actuator_lag"
     v, words = D.verdict(cands, [], options=D.DiagnoseOptions(bic_support=-20))
-    assert v == "none" and "above -20" in " ".join(words)
+    assert v == "none" and "BIC by more than 20" in " ".join(words)
     far = [cand("actuator_lag", -169, 98), cand("camera_latency", -150, 90)]
     assert D.lookalikes(far, "actuator_lag") == []
     wide = D.lookalikes(far, "actuator_lag", options=D.DiagnoseOptions(lookalike_bic=30))

@@ -611,8 +611,17 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                          "falls as 1/distance, which a polynomial in the distance follows badly near the landmarks; "
                          "calibrate again with --sensor-basis inverse_distance (or a higher --max-sensor-degree).")
         return f"unexplained:{s['name']}", words + aside
-    words.append("The model explains the data: no candidate effect is supported (every delta BIC above "
-                 f"{o.bic_support:g} or no held-out gain) and no channel's residuals depend materially on any covariate.")
+    gaining = sorted((c for c in cands if c.delta_bic <= o.bic_support and not c.implausible),
+                     key=lambda c: c.delta_bic)
+    if gaining:
+        named = ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in gaining[:3])
+        words.append(f"The model explains the data: {named} lower BIC, but no second line agrees (no held-out gain, "
+                     "no residual structure they are built for), and no channel's residuals depend materially on any "
+                     "covariate. A flexible effect lowers BIC by following the motion noise's slow wander, which "
+                     "BIC scores as if each step's noise were independent.")
+    else:
+        words.append("The model explains the data: no candidate effect lowers BIC by more than "
+                     f"{-o.bic_support:g} and no channel's residuals depend materially on any covariate.")
     return "none", words + aside
 
 
