@@ -133,10 +133,11 @@ def warn_if_loose(log: Log, fit: Fit) -> None:
     """A RuntimeWarning when the posterior leaves the robot loose, for every kind of action model: its position
     with one sensor channel (the Aibo's 0.5-rad bearings alone: about 0.5 m), its heading whatever the channels (a
     radio's ranges in dB, 2-4 dB of noise: the wheel world's seed 1 ended 45 degrees off with a heading std of 0.57
-    rad, where a log that pins the robot down has 0.01-0.06). Nothing to say without marginals."""
+    rad, where a log that pins the robot down has 0.005-0.07). Nothing to say without marginals."""
     std = np.asarray(fit.pose_std, float)
-    if std.ndim != 2 or len(std) == 0 or not np.all(np.isfinite(std)):
+    if std.ndim != 2 or not np.isfinite(std).all(axis=1).any():
         return
+    std = std[np.isfinite(std).all(axis=1)]
     spread = float(np.median(np.hypot(std[:, 0], std[:, 1])))
     extent = float(np.ptp(log.landmark_xy, axis=0).max())
     if len(fit.model.channels) == 1 and spread > LOOSE_POSITION * extent:
