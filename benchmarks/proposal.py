@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import casm_graph as cg
+from casm_graph.analysis.proposal import strongest_t
 from casm_graph.models.effects.proposal import equation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "worlds"))
@@ -43,8 +44,7 @@ def one(effect: str, seed: int, minutes: float, kind: str = "table") -> dict:
     diag = cg.diagnose(log, cal)
     row = {"effect": effect, "seed": seed, "strength": truth["strength"], "geometry": truth["geometry"],
            "verdict": diag.verdict, "proposal": diag.proposal.get("equation", []),
-           "strongest_t": max((abs(v) for f in diag.proposal.get("axes", {}).values() for v in f["t_values"].values()),
-                              default=None),
+           "strongest_t": strongest_t(diag.proposal),
            "position_rms": [position_rms(cal, log)], "heading_rms": [heading_rms(cal, log)]}
     if diag.proposal:
         cal2 = cg.calibrate(log, effects=[diag.proposal_effect()])

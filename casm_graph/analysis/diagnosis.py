@@ -33,7 +33,7 @@ from scipy import stats
 from casm_graph.analysis.predictive import predictive
 from casm_graph.analysis.predictive import words as predictive_words
 from casm_graph.analysis.proposal import ProposalOptions, propose
-from casm_graph.analysis.proposal import term_covariates
+from casm_graph.analysis.proposal import strongest_t, term_covariates
 from casm_graph.analysis.proposal import words as proposal_words
 from casm_graph.fit.residuals import CATEGORICAL, Channel, ljung_box
 from casm_graph.graph.actions.command_poly import COMMAND_CHANGE
@@ -754,7 +754,7 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
             f"The residuals point to {c.effect}: adding it lowers BIC by {-c.delta_bic:.1f}, and a sparse regression "
             f"of the motion residuals finds the {axis} residuals depending on {cov} (|t| >= {options.min_t:g}), the "
             f"structure it is built for. {c.explanation}"], {}
-    if max(abs(v) for f in found["axes"].values() for v in f["t_values"].values()) < options.last_test_t:
+    if strongest_t(found) < options.last_test_t:
         return verdict_name, words, {}
     cov = terms[0][1]
     return f"unexplained:{cov}", [

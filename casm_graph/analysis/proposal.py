@@ -170,6 +170,11 @@ def propose(chs: dict, options: ProposalOptions | None = None) -> dict:
             "options": asdict(o)}
 
 
+def strongest_t(proposal: dict) -> float | None:
+    """The largest |t| of the proposal's terms (None without terms)."""
+    return max((abs(v) for f in proposal.get("axes", {}).values() for v in f["t_values"].values()), default=None)
+
+
 def term_covariates(proposal: dict) -> list[tuple[str, str]]:
     """(axis, diagnosis covariate) of every term of the proposal, strongest (largest |t|) first: the covariate is
     heading, x, y, time, speed or turn_rate."""

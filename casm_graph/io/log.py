@@ -280,7 +280,6 @@ class _Table:
         for i, r in enumerate(self.rows):
             cell = r[j].strip(_BLANK)
             where = f"{self.name}, row {i + 1}, column '{col}'"
-            too_big = f"{where}: {_show(cell)} is out of range (ids must fit in 64 bits, |id| <= {_INT64_MAX})"
             if cell == "":
                 raise LogError(f"{where}: empty cell where a number is required")
             if _INTEGER.fullmatch(cell):
@@ -288,7 +287,7 @@ class _Table:
             elif _NUMBER.fullmatch(cell):          # 3.000000000000000000e+00: numpy's savetxt writes ids so
                 d = Decimal(cell)
                 if d.adjusted() > 19:            # int() of 1e999999999 would not end
-                    raise LogError(too_big)
+                    raise LogError(_out_of_range(where, cell))
                 if d != d.to_integral_value():
                     raise LogError(f"{where}: {_show(cell)} is not an integer")
                 v = int(d)
@@ -297,9 +296,13 @@ class _Table:
             else:
                 raise LogError(f"{where}: {_show(cell)} is not a number (expected an integer id such as 7)")
             if not -_INT64_MAX <= v <= _INT64_MAX:
-                raise LogError(too_big)
+                raise LogError(_out_of_range(where, cell))
             out[i] = v
         return out
+
+
+def _out_of_range(where: str, cell: str) -> str:
+    return f"{where}: {_show(cell)} is out of range (ids must fit in 64 bits, |id| <= {_INT64_MAX})"
 
 
 def _increasing(tab: _Table, t: np.ndarray) -> None:

@@ -30,10 +30,10 @@ from factors.reading import BASES
 SCASM_METHODS = scasm_run.METHODS             # 1-D logs: their own model kinds and report
 LOOSE_POSITION = 0.05       # one channel: a median posterior position std beyond this share of the field is warned of
 LOOSE_HEADING = 0.2         # rad: a median posterior heading std beyond this is warned of, whatever the channels
-POSITION_WARNING = ("with one sensor channel this log places the robot only to about {:.2g} m (median posterior "
+LOOSE_POSITION_WARNING = ("with one sensor channel this log places the robot only to about {:.2g} m (median posterior "
                     "position std, {:.0%} of the landmarks' extent): the model rests on little; both channels, more "
                     "precise sightings or a longer log pin it down")
-HEADING_WARNING = ("this log leaves the robot's heading loose: median posterior heading std {:.2f} rad ({:.0f} "
+LOOSE_HEADING_WARNING = ("this log leaves the robot's heading loose: median posterior heading std {:.2f} rad ({:.0f} "
                    "degrees), so the turn map and the trajectory rest on little and the fit may sit in a wrong basin "
                    "(the motion noise it needs, turn {:.3g} rad per step, says how little the commands explain); "
                    "bearings, more precise readings or a longer log pin it down")
@@ -141,10 +141,10 @@ def warn_if_loose(log: Log, fit: Fit) -> None:
     spread = float(np.median(np.hypot(std[:, 0], std[:, 1])))
     extent = float(np.ptp(log.landmark_xy, axis=0).max())
     if len(fit.model.channels) == 1 and spread > LOOSE_POSITION * extent:
-        warnings.warn(POSITION_WARNING.format(spread, spread / extent), RuntimeWarning, stacklevel=3)
+        warnings.warn(LOOSE_POSITION_WARNING.format(spread, spread / extent), RuntimeWarning, stacklevel=3)
     heading = float(np.median(std[:, 2]))
     if heading > LOOSE_HEADING:
-        warnings.warn(HEADING_WARNING.format(heading, np.degrees(heading), float(fit.model.motion_noise[2])),
+        warnings.warn(LOOSE_HEADING_WARNING.format(heading, np.degrees(heading), float(fit.model.motion_noise[2])),
                       RuntimeWarning, stacklevel=3)
 
 

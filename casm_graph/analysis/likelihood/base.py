@@ -11,6 +11,14 @@ LOG2PI = float(np.log(2 * np.pi))
 MOTION_NAMES = ("motion_noise_forward", "motion_noise_lateral", "motion_noise_turn")
 
 
+def length_factors(problem, model) -> tuple[np.ndarray, float]:
+    """Each segment's motion sigma over the model's noise levels (its length's share of the noise, per axis) and
+    the log-det constant -sum log of them: motion rows whitened by these factors alone weigh a step twice the
+    median's half as much, as the calibration's graph does, whatever noise levels are then tried."""
+    factor = problem.motion_sigma / np.asarray(model.motion_noise, float)[None, :]
+    return factor, -float(np.sum(np.log(factor)))
+
+
 @dataclass
 class NoiseParameter:
     """One sampled noise level: its name, where it lives, its value at the MAP and its bounds."""

@@ -14,7 +14,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-from casm_graph.analysis.likelihood.base import LOG2PI, MOTION_NAMES, NoiseLikelihood, NoiseParameter
+from casm_graph.analysis.likelihood.base import (LOG2PI, MOTION_NAMES, NoiseLikelihood, NoiseParameter,
+                                                 length_factors)
 from casm_graph.fit import continuous as CT
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph.problem import Problem, State
@@ -47,16 +48,17 @@ def _on_pattern(parts: list, n: int) -> tuple[np.ndarray, np.ndarray, list]:
 
 
 def unit_rows(problem: Problem, st: State, model: Model):
-    """The continuous graph's Jacobian A, residual e and row groups at unit noise levels, no Huber weights.
+    """The continuous graph's Jacobian A, residual e and row groups at unit noise levels, no Huber weights, and the
+    length factors' log-det constant.
 
-    Motion rows are whitened by each segment's length factor only (``motion_sigma`` / the model's
-    motion noise), sighting rows are raw: dividing them by lambda gives the rows at noise levels lambda.
+    Motion rows are whitened by each segment's length factor only (:func:`length_factors`), sighting rows are
+    raw: dividing them by lambda gives the rows at noise levels lambda.
     """
     unit = copy.copy(problem)
-    unit.motion_sigma = problem.motion_sigma / np.asarray(model.motion_noise, float)[None, :]
+    unit.motion_sigma, const = length_factors(problem, model)
     unit.reading_sigma = unit.bearing_sigma = 1.0
     unit.k = np.inf
-    return unit.jacobian(st)
+    return (*unit.jacobian(st), const)
 
 
 class ContinuousMarginalLikelihood(NoiseLikelihood):
@@ -87,7 +89,7 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
     def __init__(self, problem: Problem, st: State, model: Model):
         self.problem, self.state, self.model = problem, st, model
         self._set_aside = problem.set_aside(model)
-        A, e, groups = unit_rows(problem, st, model)
+        A, e, groups, lengths = unit_rows(problem, st, model)
         n = A.shape[1]
         self.n = n
         self.par = np.arange(3 * problem.lay.n_poses, n)
@@ -113,8 +115,7 @@ class ContinuousMarginalLikelihood(NoiseLikelihood):
         self.ss = np.array([float(e[r] @ e[r]) for r in rows])
         self.counts = np.array([len(r) for r in rows], float)
         self.ss_prior = float(e[prior] @ e[prior])
-        self.const = (-float(np.sum(np.log(problem.motion_sigma / motion[None, :])))
-                      - 0.5 * float(np.sum(self.counts)) * LOG2PI)
+        self.const = lengths - 0.5 * float(np.sum(self.counts)) * LOG2PI
 
     def _split(self, x):
         """(reading sigma, bearing sigma, motion noise (3,), effect theta) from a vector of noise levels, the model's

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from casm_graph.analysis.likelihood.base import LOG2PI, MOTION_NAMES, NoiseLikelihood, NoiseParameter
+from casm_graph.analysis.likelihood.base import (LOG2PI, MOTION_NAMES, NoiseLikelihood, NoiseParameter,
+                                                 length_factors)
 from casm_graph.fit.outliers import kept
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
@@ -344,9 +345,7 @@ class MarginalLikelihood(NoiseLikelihood):
         # unit noise levels: rows() then returns raw sighting rows, and motion rows whitened by each segment's
         # length factor only (a step twice the median's is trusted half as much, as the calibration has it)
         keep = (pb.motion_sigma, pb.reading_sigma, pb.bearing_sigma, pb.r_scale, pb.weight)
-        factor = pb.motion_sigma / np.asarray(self.model.motion_noise, float)[None, :]
-        self.const = -float(np.sum(np.log(factor)))
-        pb.motion_sigma = factor
+        pb.motion_sigma, self.const = length_factors(pb, self.model)
         pb.reading_sigma = pb.bearing_sigma = 1.0
         pb.r_scale, pb.weight = np.ones_like(pb.r_scale), np.ones_like(pb.weight)
         try:
