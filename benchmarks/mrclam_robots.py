@@ -1,7 +1,7 @@
 """Issue 7 in full: calibrate each of the five MRCLAM run-7 robots from its own log and check it against Vicon.
 
     nice -n 10 python benchmarks/mrclam_robots.py [--data ../shared/data/mrclam7] [--robots 1 2 3 4 5]
-        [--minutes M] [--sensor-degree D] [--effect NAME]... [--out mrclam_runs]
+        [--minutes M] [--sensor-degree D] [--effect NAME]... [--cross-terms auto|on|off] [--out mrclam_runs]
 
 Per robot: import, ``casm-graph calibrate`` (the same code path), then :func:`casm_graph.analysis.groundtruth.evaluate`.
 Prints a markdown table (the README's) and writes OUT/summary.json and OUT/robotN/{model.json,report.html}.
@@ -25,14 +25,16 @@ from casm_graph.report import pages
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: int, effects=()) -> dict:
+def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: int, effects=(),
+              cross_terms: bool | str = "auto") -> dict:
     bundle = out / f"robot{robot}_log"
     log, _ = mrclam.import_robot(data, robot, bundle)
     if minutes:
         from casm_graph.io.log import write
         write(log.window(log.t[0], log.t[0] + 60 * minutes), bundle)
     t0 = time.perf_counter()
-    log, fit = calibrate_run.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects))
+    log, fit = calibrate_run.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects),
+                                 cross_terms=cross_terms, force=True)
     seconds = time.perf_counter() - t0
     ev = groundtruth.evaluate(load(bundle), fit)
     pages.calibration(out / f"robot{robot}" / "report.html", log, fit, evaluation=ev)
@@ -63,13 +65,16 @@ def main(argv=None) -> int:
     p.add_argument("--sensor-degree", type=int, default=3)
     p.add_argument("--effect", action="append", default=[], metavar="NAME",
                    help="calibrate with this effect (repeatable; issue 7's are lens_distortion and actuator_lag)")
+    p.add_argument("--cross-terms", default="auto", choices=("auto", "on", "off"),
+                   help="the turn map's term in v, as calibrate's option (default auto)")
     p.add_argument("--out", default="mrclam_runs")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
     for r in a.robots:
-        results[r] = run_robot(Path(a.data), r, out, a.minutes, a.sensor_degree, a.effect)
+        results[r] = run_robot(Path(a.data), r, out, a.minutes, a.sensor_degree, a.effect,
+                               {"on": True, "off": False}.get(a.cross_terms, "auto"))
         print(table({r: results[r]}).splitlines()[-1], file=sys.stderr, flush=True)
         clean = {q: {k: v for k, v in e.items() if not k.startswith("_")} for q, e in results.items()}
         (out / "summary.json").write_text(json.dumps(clean, indent=2, default=lambda x: np.asarray(x).tolist()))

@@ -34,20 +34,22 @@ def heading_rms(cal, log) -> float:
     return float(np.sqrt(np.mean(d ** 2)))
 
 
-def one(effect: str, seed: int, minutes: float, kind: str = "table") -> dict:
+def one(effect: str, seed: int, minutes: float, kind: str = "table", cross_terms="auto") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         W.generate(tmp, kind=kind, minutes=minutes, seed=seed, effect=None if effect == "none" else effect,
                    min_range=0.8)
         truth = json.loads((Path(tmp) / "world_truth.json").read_text())
         log = cg.load_log(tmp)
-    cal = cg.calibrate(log)
+    cal = cg.calibrate(log, cross_terms=cross_terms)
     diag = cg.diagnose(log, cal)
+    ct = cal.model.fit.get("cross_term") or {}
     row = {"effect": effect, "seed": seed, "strength": truth["strength"], "geometry": truth["geometry"],
+           "turn_per_speed": ct.get("w_per_v") if ct.get("kept") else None,
            "verdict": diag.verdict, "proposal": diag.proposal.get("equation", []),
            "strongest_t": strongest_t(diag.proposal),
            "position_rms": [position_rms(cal, log)], "heading_rms": [heading_rms(cal, log)]}
     if diag.proposal:
-        cal2 = cg.calibrate(log, effects=[diag.proposal_effect()])
+        cal2 = cg.calibrate(log, effects=[diag.proposal_effect()], cross_terms=cross_terms)
         after = cg.diagnose(log, cal2, before=diag)
         row.update(fitted=equation(cal2.model.effects["proposal"]), verdict_after=after.verdict)
         row["position_rms"].append(position_rms(cal2, log))
@@ -61,12 +63,15 @@ def main():
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--kind", choices=("table", "continuous"), default="table")
+    ap.add_argument("--cross-terms", choices=("auto", "on", "off"), default="auto",
+                    help="calibrate's cross_terms (continuous logs: the turn map's term in v)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     for effect in a.effects:
         for seed in a.seeds:
-            row = one(effect, seed, a.minutes, a.kind)
-            print(f"{effect} seed {seed} (s={row['strength']}): {row['verdict']}; proposal {row['proposal']} "
+            row = one(effect, seed, a.minutes, a.kind, {"on": True, "off": False}.get(a.cross_terms, "auto"))
+            held = "" if row["turn_per_speed"] is None else f"turn map's term in v {row['turn_per_speed']:.3f}; "
+            print(f"{effect} seed {seed} (s={row['strength']}): {held}{row['verdict']}; proposal {row['proposal']} "
                   f"(strongest |t| {row['strongest_t']}); "
                   f"fitted {row.get('fitted')}; position RMS {[round(x, 4) for x in row['position_rms']]}; "
                   f"heading RMS {[round(x, 4) for x in row['heading_rms']]}; "

@@ -52,6 +52,10 @@ def poly_eval(coef, u):
     return sum(c * u ** i for i, c in enumerate(coef))
 
 
+def lin_of(world):
+    return world["linear_map_no_saturation"]
+
+
 def score(log, runp, world):
     out = {}
     tr = load_csv(os.path.join(log, "truth.csv"))
@@ -71,7 +75,9 @@ def score(log, runp, world):
     if am.get("kind") == "command_poly":
         sv, sw = am["scale"]["v"], am["scale"]["w"]
         fv = poly_eval(am["coefficients"]["v"], ct["v"] / sv)
-        fw = poly_eval(am["coefficients"]["w"], ct["w"] / sw)
+        cross = (am.get("cross") or {}).get("w", {}).get("v")     # turn rate += cross v / sv, when kept
+        fw = poly_eval(am["coefficients"]["w"], ct["w"] / sw) + (cross or 0.0) * ct["v"] / sv
+        out["turn_per_speed"] = None if cross is None else [round(cross / sv, 4), round(lin_of(world)["w_from_v"], 4)]
         out["coef_v"] = [round(c, 4) for c in am["coefficients"]["v"]]
         out["coef_w"] = [round(c, 4) for c in am["coefficients"]["w"]]
         out["scale"] = [sv, sw]
@@ -80,9 +86,10 @@ def score(log, runp, world):
         out["speed_err_pct"] = float(100 * np.sqrt(np.mean((fv - ct["v_true"]) ** 2)) / rv)
         out["turn_err_pct"] = float(100 * np.sqrt(np.mean((fw - ct["w_true"]) ** 2)) / rw)
         # the best the documented model class could do: LS fit of v_true by deg-2 poly in v,
-        # of w_true by deg-1 poly in w (separable)
+        # of w_true by deg-1 poly in w (and v, when the model took the cross term)
         Av = np.column_stack([(ct["v"] / sv) ** i for i in range(len(am["coefficients"]["v"]))])
-        Aw = np.column_stack([(ct["w"] / sw) ** i for i in range(len(am["coefficients"]["w"]))])
+        Aw = np.column_stack([(ct["w"] / sw) ** i for i in range(len(am["coefficients"]["w"]))]
+                             + ([ct["v"] / sv] if cross is not None else []))
         bv = np.linalg.lstsq(Av, ct["v_true"], rcond=None)[0]
         bw = np.linalg.lstsq(Aw, ct["w_true"], rcond=None)[0]
         out["speed_floor_pct"] = float(100 * np.sqrt(np.mean((Av @ bv - ct["v_true"]) ** 2)) / rv)
@@ -186,7 +193,8 @@ def main():
         print(f"{name:28s} cal_rc={rec['calibrate_rc']} {f('calibrate_s',0)}s diag_rc={rec.get('diagnose_rc','-')} "
               f"{f('diagnose_s',0)}s pos={f('pos_rms')}m speed={f('speed_err_pct',1)}%(floor {f('speed_floor_pct',1)}) "
               f"turn={f('turn_err_pct',1)}%(floor {f('turn_floor_pct',1)}) rsig={fs(sig[0])}/{fs(sig[1])} "
-              f"bsig={fs(bsig[0])}/{fs(bsig[1])} curve={f('sensor_curve_rms')} verdict={rec.get('verdict','-')}",
+              f"bsig={fs(bsig[0])}/{fs(bsig[1])} curve={f('sensor_curve_rms')} verdict={rec.get('verdict','-')}"
+              + (f" turn_per_speed={rec['turn_per_speed']}" if rec.get("turn_per_speed") else ""),
               flush=True)
         for k in ("calibrate_stderr", "diagnose_stderr"):
             if rec.get(k) and (rec.get(k.split('_')[0] + "_rc") not in (0,)):

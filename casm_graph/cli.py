@@ -118,6 +118,7 @@ def _calibrate(args) -> int:
             log, fit = calibrate_run.run(args.log, args.out, method=args.method, sensor_degree=args.sensor_degree,
                                          max_sensor_degree=args.max_sensor_degree,
                                          sensor_basis=args.sensor_basis,
+                                         cross_terms={"on": True, "off": False}.get(args.cross_terms, "auto"),
                                          effects=_requested_effects(args), seed=args.seed, progress=bar, regions=args.regions,
                                          force=args.force, command=command_line(args))
     finally:
@@ -136,6 +137,10 @@ def _calibrate(args) -> int:
     if len(slopes) > 1:
         print(f"  range start slope {max(slopes, key=lambda t: t[1])[0]:.3f}, the likeliest after the held coarse "
               "rounds of " + ", ".join(f"{s:.3f} (log-likelihood {ll:,.0f})" for s, ll in slopes))
+    cross = m.fit.get("cross_term")
+    if cross:
+        print(f"  turn rate per forward speed {cross['w_per_v']:+.4g} rad/s per m/s (unequal wheels): "
+              + ("kept" if cross["kept"] else "not kept") + f", delta BIC {cross['delta_bic']:,.1f}")
     if "regional_motion_noise" in m.effects:
         e = m.effects["regional_motion_noise"]
         for g, (kr, kt, kd, ok) in enumerate(zip(e["k_r"], e["k_t"], e["k_d"], determined(e))):
@@ -257,6 +262,10 @@ def parser() -> argparse.ArgumentParser:
                    help="the sensor curve's variable: a polynomial in the distance (the paper's) or in 1/distance, "
                         "for a reading that is an apparent size (pixels), which falls as 1/d; auto (default): the "
                         "distance, and 1/d competing when the fit in d misses near the landmarks (graph method)")
+    c.add_argument("--cross-terms", default="auto", choices=("auto", "on", "off"),
+                   help="continuous v,w commands: the turn map also linear in v (turn rate += c v), the turn a "
+                        "differential drive's unequal wheels add to every forward command; auto (default): the "
+                        "graph method keeps it when BIC supports it; off: each map reads its own command only")
     c.add_argument("--regions", default=None, metavar="NX,NY[,X0,Y0,X1,Y1]",
                    help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")

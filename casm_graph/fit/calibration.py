@@ -49,12 +49,14 @@ class CalibrateOptions:
     max_sensor_degree: int = 6         # the graph method raises the sensor degree up to this when the data demand
     sensor_basis: str = "auto"         # the curve's variable: "distance" (the paper's), "inverse_distance" (a size),
                                        # or "auto": d, and 1/d competing when the fit in d misses near the landmarks
+    cross_terms: bool | str = "auto"   # ``v, w`` commands: the turn map also linear in ``v`` (unequal wheels);
+                                       # "auto": the graph method keeps it when BIC supports it
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,
                 "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions,
                 "max_sensor_degree": self.max_sensor_degree, "sensor_basis": self.sensor_basis,
-                "graph": self.graph.to_json(),
+                "cross_terms": self.cross_terms, "graph": self.graph.to_json(),
                 "command_graph": self.command_graph.to_json()}
 
 
@@ -134,6 +136,12 @@ class Calibration:
                  "  motion noise per step: " + ", ".join(f"{s:.3g}" for s in m.motion_noise) + " (m, m, rad)"]
         if m.action.std_summary() is not None:
             lines.append("  {}: {}".format(*m.action.std_summary()))
+        cross = fit.get("cross_term")
+        if cross:
+            sd = cross.get("w_per_v_std")
+            lines.append(f"  turn rate per forward speed (unequal wheels): {cross['w_per_v']:+.4g} rad/s per m/s"
+                         + (f" (std {sd:.2g})" if sd is not None else "") + (", kept" if cross["kept"] else
+                         ", not kept") + f" (delta BIC {cross['delta_bic']:,.1f})")
         pose_sd = np.sqrt(np.nanmean(self.trajectory["sx"] ** 2 + self.trajectory["sy"] ** 2)) \
             if np.isfinite(self.trajectory["sx"]).any() else float("nan")
         lines.append(f"  trajectory: RMS position std {pose_sd:.3f} m")

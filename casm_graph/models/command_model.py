@@ -7,6 +7,12 @@ in the log), so every coefficient is a velocity in m/s or rad/s and the whole mo
 vector ``[a_0..a_Dv, c_0..c_Dy, b_0..b_Dw]`` (no ``c`` without a sideways command) that is linear in the
 basis: the graph holds it as a single vector variable next to the poses and the sensor polynomial.
 
+With ``cross`` (wheeled ``v, w`` commands only) the turn map is also linear in the forward command: a
+differential drive whose wheels differ in size turns while commanded straight (turn rate += b_x v / scale_v,
+UMBmark's wheel-diameter error). The cross coefficient is the turn map's last entry, after its power series.
+(The same wheels' speed term in ``w``, a quarter of the track times the gain difference, is second order; on
+MRCLAM robot 4 it ran to -0.16 and took the speed map 70 % of its range from Vicon's.)
+
 With the ``actuator_lag`` effect the velocity follows ``f(command)`` through ``lag_order`` cascaded
 first-order lags, each of time constant ``lag / lag_order`` (so ``lag`` is the mean delay whatever the
 order), each stage driven by the previous one's mean over the step (order 2: a critically damped drive);
@@ -54,6 +60,7 @@ class CommandModel:
     commands: tuple[str, ...] = ("v", "w")   # the command columns: ``v, w`` or ``vx, vy, w``
     y_coef: np.ndarray = field(default_factory=lambda: np.zeros(0))   # (Dy+1,) sideways map (``vy`` commands only)
     y_std: np.ndarray | None = None
+    cross: bool = False                   # the turn map of ``v, w`` also linear in ``v`` (its last coefficient)
 
     @property
     def params(self) -> np.ndarray:
@@ -78,10 +85,45 @@ class CommandModel:
         out.append((self.commands[-1], len(self.commands) - 1, 2, slice(nv + ny, nv + ny + nw)))
         return out
 
-    def coefficients(self, command: str) -> tuple[np.ndarray, np.ndarray | None]:
-        """(coefficients, posterior std or None) of the map of ``command``."""
+    def _map(self, command: str) -> tuple[np.ndarray, np.ndarray | None, int]:
+        """(whole coefficient vector, its std or None, how many of them are the power series) of a map."""
         axis = next(a for c, _, a, _ in self.maps if c == command)
-        return [(self.v_coef, self.v_std), (self.y_coef, self.y_std), (self.w_coef, self.w_std)][axis]
+        coef, std = [(self.v_coef, self.v_std), (self.y_coef, self.y_std), (self.w_coef, self.w_std)][axis]
+        return coef, std, len(coef) - (self.cross and axis == 2)
+
+    def coefficients(self, command: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """(power-series coefficients, their posterior std or None) of the map of ``command``."""
+        coef, std, n = self._map(command)
+        return coef[:n], None if std is None else std[:n]
+
+    def cross_coefficient(self, command: str) -> tuple[float, float | None] | None:
+        """(coefficient on the other command / its scale, std or None) of the map of ``command``; None where it
+        has none (without ``cross``, and the speed map)."""
+        coef, std, n = self._map(command)
+        if n == len(coef):
+            return None
+        return float(coef[n]), None if std is None else float(std[n])
+
+    def other(self, command: str) -> str:
+        """The other command of a ``v, w`` pair (the one a cross term reads)."""
+        return self.commands[-1] if command == self.commands[0] else self.commands[0]
+
+    @property
+    def crossed(self) -> list[str]:
+        """The maps that hold a cross term: ``["w"]`` with ``cross``."""
+        return [self.commands[-1]] if self.cross else []
+
+    def with_cross(self) -> "CommandModel":
+        """This map with the turn map's term in ``v`` added at 0 (itself when it has it, or has no ``v, w``)."""
+        if self.cross or tuple(self.commands) != COMMANDS[0]:
+            return self
+        return replace(self, w_coef=np.append(self.w_coef, 0.0), w_std=None, v_std=None, cross=True)
+
+    def same_form(self, controls: np.ndarray, gain: float = 1.0) -> "CommandModel":
+        """A map of this one's degrees and cross terms sized for ``controls``, ``gain`` times the identity."""
+        nv, ny, nw = self.sizes
+        return replace(for_commands(controls, nv - 1, nw - 1 - self.cross, gain=gain, y_degree=ny - 1, cross=self.cross),
+                       lag=self.lag, lag_order=self.lag_order)
 
     def with_params(self, p: np.ndarray, std: np.ndarray | None = None) -> "CommandModel":
         p = np.asarray(p, float)
@@ -94,10 +136,12 @@ class CommandModel:
 
     def basis(self, controls: np.ndarray, dt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(n, Dv+1), (n, Dy+1) and (n, Dw+1) monomials of the scaled commands (the sideways one (n, 0) without
-        ``vy``); with the steps' ``dt``, through the lag."""
+        ``vy``), with ``cross`` the scaled ``v`` last in the turn map's; with the steps' ``dt``, through the lag."""
         u = np.asarray(controls, float) / np.asarray(self.scale)
         nv, ny, nw = self.sizes
-        bv, bw = u[:, 0:1] ** np.arange(nv), u[:, -1:] ** np.arange(nw)
+        bv, bw = u[:, 0:1] ** np.arange(nv), u[:, -1:] ** np.arange(nw - self.cross)
+        if self.cross:
+            bw = np.hstack([bw, u[:, 0:1]])
         by = u[:, 1:2] ** np.arange(ny) if ny else np.zeros((len(u), 0))
         if dt is None or self.lag <= 0:
             return bv, by, bw
@@ -147,14 +191,17 @@ class CommandModel:
         """The coefficients' posterior std for a JSON file (the uncertainty run's Laplace section)."""
         def lst(a):
             return None if a is None else np.asarray(a, float).tolist()
-        return {"command_std": {c: lst(self.coefficients(c)[1]) for c, *_ in self.maps}}
+        out = {"command_std": {c: lst(self.coefficients(c)[1]) for c, *_ in self.maps}}
+        if self.cross:
+            out["command_cross_std"] = {c: {self.other(c): self.cross_coefficient(c)[1]} for c in self.crossed}
+        return out
 
     def std_summary(self) -> tuple[str, str] | None:
         """(what, value) of the coefficients' posterior std, None before marginals."""
         if self.v_std is None:
             return None
         return ("command map coefficient std", "; ".join(
-            f"{c} " + ", ".join(f"{x:.2g}" for x in self.coefficients(c)[1]) for c, *_ in self.maps))
+            f"{c} " + ", ".join(f"{x:.2g}" for x in self._map(c)[1]) for c, *_ in self.maps))
 
     def describe(self) -> str:
         return "continuous commands " + ",".join(self.commands)
@@ -172,37 +219,51 @@ class CommandModel:
                 "coefficients": {c: lst(self.coefficients(c)[0]) for c in names},
                 "std": {c: lst(self.coefficients(c)[1]) for c in names},
                 "command_range": {c: [float(x) for x in r] for c, r in zip(names, self.command_range)},
-                "lag": float(self.lag), "lag_order": int(self.lag_order)}
+                "lag": float(self.lag), "lag_order": int(self.lag_order),
+                **({"cross": {c: {self.other(c): self.cross_coefficient(c)[0]} for c in self.crossed},
+                    "cross_std": {c: {self.other(c): self.cross_coefficient(c)[1]} for c in self.crossed}}
+                   if self.cross else {})}
 
     @staticmethod
     def coefficients_in_units(am: dict) -> dict[str, tuple[list, list]]:
         """A command map's coefficients and std per command in the command's own units: model.json's divided by
-        ``scale``^i (each log scales by its own largest command, so only these compare across logs)."""
+        ``scale``^i (each log scales by its own largest command, so only these compare across logs). A cross term
+        comes as the key ``"<map>_from_<other command>"``, divided by the other command's scale."""
         out = {}
         coefficients = am.get("coefficients")
         if not isinstance(coefficients, dict):
             return out
         std, scale = am.get("std") or {}, am.get("scale") or {}
-        for c, coef in coefficients.items():
+
+        def of(c):
             s = json_number(scale.get(c, 1.0)) if isinstance(scale, dict) else 1.0
-            s = s if np.isfinite(s) and s > 0 else 1.0
+            return s if np.isfinite(s) and s > 0 else 1.0
+
+        for c, coef in coefficients.items():
+            s = of(c)
             sd = (std.get(c) if isinstance(std, dict) else None) or [None] * len(coef)
             out[c] = ([json_number(v) / s ** i for i, v in enumerate(coef)],
                       [(json_number(sd[i]) if i < len(sd) else np.nan) / s ** i for i in range(len(coef))])
+        cross, cross_std = am.get("cross"), am.get("cross_std") or {}
+        for c, terms in (cross.items() if isinstance(cross, dict) else ()):
+            for o, v in (terms.items() if isinstance(terms, dict) else ()):
+                sd = (cross_std.get(c) or {}).get(o) if isinstance(cross_std.get(c), dict) else None
+                out[f"{c}_from_{o}"] = ([json_number(v) / of(o)], [json_number(sd) / of(o)])
         return out
 
     @staticmethod
     def figures(am: dict) -> list[tuple[str, str, float, float]]:
         """(name, family, value, std) of every figure of a command map's model.json entry ``am``: its coefficients
         in the command's own units."""
-        return [(f"{c} coef {i}", "command_map", v, e) for c, (coef, sd) in CommandModel.coefficients_in_units(am).items()
+        return [(f"{c} coef {i}" if "_from_" not in c else c.replace("_", " "), "command_map", v, e)
+                for c, (coef, sd) in CommandModel.coefficients_in_units(am).items()
                 for i, (v, e) in enumerate(zip(coef, sd))]
 
     @staticmethod
     def brief(am: dict) -> dict:
         """A command map's model.json entry in brief, for a fleet's table: its coefficients in the command's units."""
-        return {f"{c}_coef_{i}": v for c, (coef, _) in CommandModel.coefficients_in_units(am).items()
-                for i, v in enumerate(coef)}
+        return {(f"{c}_coef_{i}" if "_from_" not in c else c): v
+                for c, (coef, _) in CommandModel.coefficients_in_units(am).items() for i, v in enumerate(coef)}
 
     @classmethod
     def read(cls, w: Where, am: dict) -> "CommandModel":
@@ -222,6 +283,12 @@ class CommandModel:
                 w.vec(std[c], f"action_model.std.{c}", n=n, nullable=True, nonneg=True)
             if c in rng:
                 w.vec(rng[c], f"action_model.command_range.{c}", n=2)
+        if "cross" in am:
+            cross = w.obj(am["cross"], "action_model.cross")
+            if tuple(names) != COMMANDS[0] or list(cross) != ["w"]:
+                w.fail("action_model.cross", f"holds {one_line(repr(sorted(cross)))[:40]}; a cross term is the "
+                       f"turn map's in v ('v, w' commands): {{\"w\": {{\"v\": ...}}}}")
+            w.num(w.obj(cross["w"], "action_model.cross.w").get("v"), "action_model.cross.w.v")
         if "lag" in am:
             w.num(am["lag"], "action_model.lag", nonneg=True)
         if am.get("lag_order", 1) not in (1, 2):
@@ -240,26 +307,35 @@ class CommandModel:
             return None if d.get(c) is None else np.array(d[c], float)
 
         side = {"y_coef": arr(am["coefficients"], names[1]), "y_std": arr(std, names[1])} if len(names) == 3 else {}
+        coef = {c: arr(am["coefficients"], c) for c in (names[0], names[-1])}
+        sd = {c: arr(std, c) for c in (names[0], names[-1])}
+        cross = am.get("cross")
+        if cross:                    # the turn map's coefficient in v goes last in its vector
+            s = ((am.get("cross_std") or {}).get("w") or {}).get("v")
+            coef["w"] = np.append(coef["w"], float(cross["w"]["v"]))
+            sd["w"] = None if sd["w"] is None else np.append(sd["w"], np.nan if s is None else float(s))
         return cls(scale=tuple(float(am["scale"][c]) for c in names),
-                   v_coef=arr(am["coefficients"], names[0]), w_coef=arr(am["coefficients"], names[-1]),
-                   v_std=arr(std, names[0]), w_std=arr(std, names[-1]),
+                   v_coef=coef[names[0]], w_coef=coef[names[-1]], v_std=sd[names[0]], w_std=sd[names[-1]],
+                   cross=bool(cross),
                    command_range=tuple(tuple(rng.get(c, (0.0, 0.0))) for c in names),
                    lag=float(am.get("lag", 0.0)), lag_order=int(am.get("lag_order", 1)), commands=names, **side)
 
 
 def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,
-                 gain: float = 0.0, y_degree: int | None = None) -> CommandModel:
+                 gain: float = 0.0, y_degree: int | None = None, cross: bool = False) -> CommandModel:
     """A model sized for ``controls`` (columns ``v, w``, or ``vx, vy, w``: a sideways map of ``y_degree``, default
-    ``v_degree``): every map ``gain`` times the identity (0: the paper's zero start)."""
+    ``v_degree``): every map ``gain`` times the identity (0: the paper's zero start); ``cross`` (``v, w`` only)
+    adds the turn map's term in ``v``, at 0."""
     controls = np.asarray(controls, float)
     names = COMMANDS[0] if controls.shape[1] == 2 else COMMANDS[1]
     scale = np.max(np.abs(controls), axis=0)
     scale = np.where(scale > 0, scale, 1.0)
-    v, w = np.zeros(v_degree + 1), np.zeros(w_degree + 1)
+    cross = bool(cross) and len(names) == 2
+    v, w = np.zeros(v_degree + 1), np.zeros(w_degree + 1 + cross)
     y = np.zeros((v_degree if y_degree is None else y_degree) + 1) if len(names) == 3 else np.zeros(0)
     v[1], w[1] = gain * scale[0], gain * scale[-1]
     if len(y):
         y[1] = gain * scale[1]
     rng = tuple((float(c.min()), float(c.max())) for c in controls.T)
     return CommandModel(scale=tuple(float(x) for x in scale), v_coef=v, w_coef=w, command_range=rng, commands=names,
-                        y_coef=y)
+                        y_coef=y, cross=cross)

@@ -51,6 +51,8 @@ def check_request(options: CalibrateOptions) -> list:
         raise LogError(f"--max-sensor-degree must be between 1 and 6 (got {options.max_sensor_degree})")
     if options.sensor_basis not in (*BASES, "auto"):
         raise LogError(f"--sensor-basis must be one of auto, {', '.join(BASES)} (got {options.sensor_basis!r})")
+    if options.cross_terms not in (True, False, "auto"):
+        raise LogError(f"cross_terms must be True, False or 'auto' (got {options.cross_terms!r})")
     if options.sensor_basis not in ("distance", "auto") and options.method not in ("graph", "graph-em"):
         raise LogError(f"--sensor-basis {options.sensor_basis}: the {options.method} method fits a polynomial in the "
                        f"distance only; use --method graph or graph-em")
@@ -78,7 +80,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         return cal
     part = kind(log.action_model_kind)
     part.check(log, options, classes)
-    start = part.start_model(log, options.sensor_degree, start_basis(options))
+    start = part.start_model(log, options.sensor_degree, start_basis(options), cross=options.cross_terms is True)
     fit = part.calibrate(log, start, options, classes, progress)
     warn_if_worse(fit, classes)
     warn_if_unphysical(log, fit, classes)
@@ -162,13 +164,14 @@ def warn_if_unphysical(log: Log, fit: Fit, classes: list) -> None:
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
         effects: tuple = (), seed: int = 0, progress: Progress | None = None,
         regions: str | None = None, force: bool = False, command: str | None = None,
-        max_sensor_degree: int = 6, sensor_basis: str = "auto") -> tuple[Log, Fit | dict]:
+        max_sensor_degree: int = 6, sensor_basis: str = "auto", cross_terms: bool | str = "auto") -> tuple[Log, Fit | dict]:
     """Load the bundle at ``log_dir``, calibrate it and write the run to ``out``; bad input raises LogError first.
 
     Returns the log and the method's :class:`Fit` (the model dict for the 1-D methods)."""
     checked_out(out, force, inputs=[log_dir])
     options = CalibrateOptions(method=method, sensor_degree=sensor_degree, effects=tuple(effects), seed=seed,
-                               regions=regions, max_sensor_degree=max_sensor_degree, sensor_basis=sensor_basis)
+                               regions=regions, max_sensor_degree=max_sensor_degree, sensor_basis=sensor_basis,
+                               cross_terms=cross_terms)
     check_request(options)
     log = load(log_dir)
     cal = calibrate(log, options, progress=progress, command=command)

@@ -278,7 +278,7 @@ def velocity_table(fit: Fit, truth: dict | None) -> str:
 
 def maps_figure(log: Log, fit: Fit, reference=None):
     """Learned forward-speed, sideways-speed (``vx, vy, w`` logs) and turn-rate maps over the commands run (and a
-    reference map, if given)."""
+    reference map, if given), each at the other commands 0."""
     cm = fit.model.command
     fig, axes = subplots(1, len(cm.maps), figsize=(5.5 * len(cm.maps), 4))
     for ax, (name, j, k, _) in zip(np.atleast_1d(axes), cm.maps):
@@ -304,8 +304,14 @@ def maps_figure(log: Log, fit: Fit, reference=None):
 def command_facts(m: Model) -> list[tuple]:
     """The command maps' coefficients, for the page's table of the fit."""
     cm = m.command
-    return [(f"{map_name(k)} {name}(c)", ", ".join(f"{x:.4g}" for x in cm.params[sl])
-             + f" (powers of c/{cm.scale[j]:.3g})") for name, j, k, sl in cm.maps]
+
+    def cross(name):
+        term = cm.cross_coefficient(name)
+        o = cm.other(name)
+        return "" if term is None else f"; {term[0]:+.4g} {o}/{cm.scale[cm.commands.index(o)]:.3g}"
+
+    return [(f"{map_name(k)} {name}(c)", ", ".join(f"{x:.4g}" for x in cm.coefficients(name)[0])
+             + f" (powers of c/{cm.scale[j]:.3g})" + cross(name)) for name, j, k, _ in cm.maps]
 
 
 @dataclass(frozen=True)

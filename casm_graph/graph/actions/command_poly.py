@@ -19,7 +19,6 @@ from casm_graph.graph import noise
 from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
 from casm_graph.graph.augmented import motion_function
 from casm_graph.io.log import Log, wrap
-from casm_graph.models.command_model import for_commands
 from casm_graph.models.effects import regional_motion_noise as RMN
 from casm_graph.models.model import Model
 
@@ -128,8 +127,7 @@ class CommandPoly(ActionPart):
 
     def prior(self, model: Model) -> tuple[np.ndarray, np.ndarray]:
         cm = model.command
-        nv, ny, nw = cm.sizes
-        nominal = for_commands(self.log.controls, nv - 1, nw - 1, gain=1.0, y_degree=ny - 1)
+        nominal = cm.same_form(self.log.controls)
         return nominal.params, PARAM_PRIOR_REL * np.concatenate([np.full(sl.stop - sl.start, cm.scale[col])
                                                                  for _, col, _, sl in cm.maps])
 

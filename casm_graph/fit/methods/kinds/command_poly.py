@@ -13,8 +13,8 @@ from casm_graph.models.effects.regional_motion_noise import Regions
 class CommandKind(ActionKind):
     name = KIND
 
-    def start_model(self, log, sensor_degree=3, basis="distance"):
-        return continuous.start_model(log, sensor_degree, basis=basis)
+    def start_model(self, log, sensor_degree=3, basis="distance", cross=False):
+        return continuous.start_model(log, sensor_degree, basis=basis, cross=cross)
 
     def initialise(self, log, start):
         return continuous.initialise(log, start)
@@ -33,7 +33,8 @@ class CommandKind(ActionKind):
             if not classes:
                 return base
         curve = {"max_sensor_degree": options.max_sensor_degree,
-                 "free_basis": options.sensor_basis == "auto" and options.max_sensor_degree > options.sensor_degree}
+                 "free_basis": options.sensor_basis == "auto" and options.max_sensor_degree > options.sensor_degree,
+                 "try_cross": options.cross_terms == "auto"}
         if classes:
             return continuous.fit_with_effects(log, start, list(options.effects), seed=options.seed,
                                                progress=progress, regions=Regions.parse(options.regions, log),

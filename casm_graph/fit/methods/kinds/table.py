@@ -78,7 +78,7 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
 class TableKind(ActionKind):
     name = KIND
 
-    def start_model(self, log, sensor_degree=3, basis="distance"):
+    def start_model(self, log, sensor_degree=3, basis="distance", cross=False):
         return paper_start(log, sensor_degree, basis)
 
     def initialise(self, log, start):
