@@ -76,7 +76,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, part.challenge,
                                o.proposal_challenge, o.lookalike_bic)
     alike = lookalikes(cands, v, separated_by, relative=part.relative, options=o, base=part.base_prediction)
-    words += family_words(cands, v) + lookalike_words(alike) + part.notes(cands)
+    words += family_words(cands, v) + lookalike_words(alike) + part.advice(found) + part.notes(cands)
     diag = Diagnosis(rep, cands, v, words, struct, part.fit, chs, time.perf_counter() - t0, skipped,
                      set_aside=part.set_aside, correlation=correlation(chs), lookalikes=alike,
                      predictive=open_loop_error(part.problem, part.state, part.poses), proposal=found, options=o)

@@ -278,7 +278,7 @@ def velocity_table(fit: Fit, truth: dict | None) -> str:
 
 def maps_figure(log: Log, fit: Fit, reference=None):
     """Learned forward-speed, sideways-speed (``vx, vy, w`` logs) and turn-rate maps over the commands run (and a
-    reference map, if given), each at the other commands 0."""
+    reference map, if given), each at the other commands 0; a turn map with a term in v also at the median v."""
     cm = fit.model.command
     fig, axes = subplots(1, len(cm.maps), figsize=(5.5 * len(cm.maps), 4))
     for ax, (name, j, k, _) in zip(np.atleast_1d(axes), cm.maps):
@@ -290,7 +290,14 @@ def maps_figure(log: Log, fit: Fit, reference=None):
         ax.hist(c, bins=60, weights=log.dt, color="0.85", label="time at command (s, right axis)")
         ax2 = ax.twinx()
         ax2.plot(grid, grid, "k:", label="nominal (= command)")
-        ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned")
+        ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned" + (" at v = 0" if cm.cross_coefficient(
+            name) is not None else ""))
+        if cm.cross_coefficient(name) is not None:          # the turn the forward command adds (unequal wheels)
+            other = cm.commands.index(cm.other(name))
+            typical = float(np.median(log.controls[:, other]))
+            at = ctl.copy()
+            at[:, other] = typical
+            ax2.plot(grid, cm.velocities(at)[:, k], "C2", lw=1.5, label=f"learned at {cm.other(name)} = {typical:.3g}")
         if reference is not None:
             ax2.plot(grid, reference.velocities(ctl)[:, k], "C3--", lw=2, label="fitted against truth")
         ax.set(xlabel=f"commanded {name} ({unit})", title=f"{AXIS_WORDS[k][0]} map")

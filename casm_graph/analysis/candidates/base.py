@@ -49,3 +49,7 @@ class Bench:
     def notes(self, candidates: list[Candidate]) -> list[str]:
         """Sentences the summary adds about how these candidates were scored."""
         return []
+
+    def advice(self, proposal: dict) -> list[str]:
+        """Sentences on where the action model itself can hold a proposal's terms (none by default)."""
+        return []

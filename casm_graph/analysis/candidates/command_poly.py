@@ -362,6 +362,20 @@ class CommandBench(Bench):
     def relative(self) -> float:
         return self.options.lookalike_relative
 
+    def advice(self, proposal: dict) -> list[str]:
+        """A turn rate in proportion to the forward speed is the turn map's term in v, which a calibration without
+        it can fit (``--cross-terms``)."""
+        cm = self.model.command
+        terms = proposal.get("terms", {}) if proposal else {}
+        if cm.cross or cm.with_cross() is cm or not {"turn: v_forward", "turn: speed"} & set(terms):
+            return []
+        tried = (self.model.fit or {}).get("cross_term")
+        why = (f"the calibration tried it and left it out (delta BIC {tried['delta_bic']:,.1f})" if tried else
+               "this calibration was made without it")
+        return [f"A turn rate in proportion to the forward speed is the coupling of a differential drive's unequal "
+                f"wheels, which the turn map's term in v holds: `calibrate --cross-terms on` fits it in the action "
+                f"model ({why})."]
+
     def notes(self, candidates: list[Candidate]) -> list[str]:
         if not candidates:
             return []
