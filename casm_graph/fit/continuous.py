@@ -160,7 +160,7 @@ def initialise(log: Log, model: Model, options: W.WindowOptions | None = None) -
 def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1,
                 basis: str = "distance", cross: bool = False) -> Model:
     """The paper's start for continuous commands: zero velocity for every command, a flat sensor line; with
-    ``cross`` each map of ``v, w`` also linear in the other command.
+    ``cross`` the turn map of ``v, w`` also linear in ``v``.
 
     Either channel may be missing from the whole log (range-only or bearing-only sensors); the
     model then records which channels it has (``Model.channels``).
@@ -178,7 +178,8 @@ def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: i
     poly[0] = float(np.nanmedian(log.obs_reading)) if n_r else 0.0
     return Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=poly,
                  reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
-                 motion_noise=np.array(PAPER_MOTION_NOISE), command=for_commands(log.controls, v_degree, w_degree, cross=cross),
+                 motion_noise=np.array(PAPER_MOTION_NOISE),
+                 command=for_commands(log.controls, v_degree, w_degree, cross=cross),
                  channels=log.channels, reading_basis=basis)
 
 
@@ -367,7 +368,13 @@ def in_basis(log: Log, first: Fit, basis: str, degree: int, seed: int, progress:
     landmark (0.05 m off, the standoff) on two of three omnidirectional worlds, 0.43 m from the truth on one."""
     t0 = time.perf_counter()
     model = curve_in(log, first.model, first.poses, basis, degree, o.sensor_curve.tail)
-    out = _full_graph(log, model, first.poses, seed, progress, marginals, o, max_sensor_degree, [], [], 0, t0)
+    return continued(first, _full_graph(log, model, first.poses, seed, progress, marginals, o, max_sensor_degree, [],
+                                        [], 0, t0))
+
+
+def continued(first: Fit, out: Fit) -> Fit:
+    """``out``, a fit warm from ``first``'s poses, with ``first``'s records of how it started (and of the cross
+    term's test) and their cost, stages, iterations, seconds and notes together."""
     out.model.fit.update({k: first.model.fit[k] for k in ("start_options", "start_slopes", "cross_term")
                           if k in first.model.fit}, iterations=first.iterations + out.iterations,
                          seconds=round(first.model.fit.get("seconds", 0) + out.model.fit["seconds"], 3))
@@ -393,16 +400,11 @@ def cross_choice(log: Log, first: Fit, seed: int, progress: Progress, marginals:
     value, std = other.model.command.cross_coefficient("w")
     wald = (value / std) ** 2 if std is not None and np.isfinite(std) and std > 0 else 0.0
     delta_bic = float(np.log(n) - wald)
-    keep = other if delta_bic <= -o.cross_margin else first
-    if keep is other:
-        keep.model.fit.update({k: first.model.fit[k] for k in ("start_options", "start_slopes") if k in first.model.fit},
-                              iterations=first.iterations + other.iterations,
-                              seconds=round(first.model.fit.get("seconds", 0) + other.model.fit["seconds"], 3))
-        keep = replace(other, cost=first.cost + other.cost, stages=first.stages + other.stages,
-                       iterations=first.iterations + other.iterations, notes={**first.notes, **other.notes})
+    keep = continued(first, other) if delta_bic <= -o.cross_margin else first
     keep.model.fit["cross_term"] = {"kept": keep is not first, "delta_bic": round(delta_bic, 1), "wald": round(wald, 1),
                                     "w_per_v": round(value / cm.scale[0], 6),
-                                    "w_per_v_std": None if std is None or not np.isfinite(std) else round(std / cm.scale[0], 6)}
+                                    "w_per_v_std": None if std is None or not np.isfinite(std)
+                                    else round(std / cm.scale[0], 6)}
     return keep
 
 
