@@ -75,11 +75,12 @@ def wheel(seed: int, minutes: float, work: Path) -> str:
     return f"| wheel world, seed {seed} | {truth:+.3f} | {term(auto)} | {t0:.2f} -> {t1:.2f} | {p0:.4f} -> {p1:.4f} |"
 
 
-def floor(seed: int, minutes: float) -> str:
-    log, _ = simulate_floor(FloorConfig(minutes=minutes, seed=seed))
+def floor(seed: int, minutes: float, config: dict) -> str:
+    log, _ = simulate_floor(FloorConfig(minutes=minutes, seed=seed, **config))
     off, auto = calibrate(log, False), calibrate(log, "auto")
     moved = np.max(np.abs(auto.trajectory["x"] - off.trajectory["x"]))
-    return f"| floor, seed {seed} | 0 | {term(auto)} | - | largest x change {moved:.4f} m |"
+    said = "".join(f", {k} {v:g}" for k, v in config.items())
+    return f"| floor, seed {seed}{said} | 0 | {term(auto)} | - | largest x change {moved:.4f} m |"
 
 
 def robot(r: int, work: Path) -> str:
@@ -103,6 +104,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--wheel-seeds", type=int, nargs="*", default=[0, 1, 2, 3])
     p.add_argument("--floor-seeds", type=int, nargs="*", default=[])
+    p.add_argument("--floor-config", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="FloorConfig fields for the floors (benchmarks/continuous_effects.py: dt=0.1 actuator_lag=0.3)")
     p.add_argument("--mrclam", type=int, nargs="*", default=[])
     p.add_argument("--independent", nargs="*", default=[], metavar="EFFECT")
     p.add_argument("--independent-seeds", type=int, nargs="*", default=[0])
@@ -116,8 +119,9 @@ def main(argv=None) -> int:
         work = Path(tmp)
         for s in a.wheel_seeds:
             print(wheel(s, a.minutes, work), flush=True)
+        config = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.floor_config)}
         for s in a.floor_seeds:
-            print(floor(s, a.minutes), flush=True)
+            print(floor(s, a.minutes, config), flush=True)
         for r in a.mrclam:
             print(robot(r, work), flush=True)
         for e in a.independent:
