@@ -247,6 +247,21 @@ def test_drift_on_command_maps():
     assert {f["parameter"] for f in res.flags} == {"v coef 1", "w coef 1"}
 
 
+def test_command_maps_of_two_forms_are_not_compared():
+    """A session whose turn map took its term in v (unequal wheels) against one without: the intercept absorbs
+    the term differently, so no command-map figure is compared; two sessions with the term are."""
+    base = _command_model()
+    crossed = _command_model()
+    crossed["action_model"].update(cross={"w": {"v": 0.3}}, cross_std={"w": {"v": 0.005}})
+    crossed["action_model"]["coefficients"]["w"] = [-0.15, 0.8]      # the intercept the term took over
+    assert drift.analyse([drift.Session("w2", "2026-04-01", "0", base),
+                          drift.Session("w2", "2026-04-02", "1", crossed)]).drifted == {}
+    moved = _command_model(scale=0.9)
+    moved["action_model"].update(cross={"w": {"v": 0.3}}, cross_std={"w": {"v": 0.005}})
+    res = drift.analyse([drift.Session("w2", "2026-04-01", "0", crossed), drift.Session("w2", "2026-04-02", "1", moved)])
+    assert res.drifted == {"w2": ["command_map"]}
+
+
 # --------------------------------------------------------------------------- emcee on a cluster
 
 def test_dask_pool_runs_emcee_like_serial():

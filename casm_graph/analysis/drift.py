@@ -227,12 +227,15 @@ def _p_chance(z: float) -> float:
 
 def compare(robot: str, a: Session, b: Session, pa: dict, pb: dict, kind: str, z: float = Z,
             min_rel: float = MIN_REL) -> tuple[list[dict], list[dict]]:
-    """Figure flags and family comparisons between sessions ``a`` (earlier) and ``b``."""
+    """Figure flags and family comparisons between sessions ``a`` (earlier) and ``b``. Command maps of two forms
+    (one with the turn map's term in v, ``w from v``, one without) are not compared: the other coefficients
+    absorb the term differently."""
     flags, fams = [], []
     tested: dict[str, list] = {}
+    unlike = {"command_map"} if ("w from v" in pa) != ("w from v" in pb) else set()
     for name in pa.keys() & pb.keys():
         fa, fb = pa[name], pb[name]
-        if fa["family"] not in FLAGGED_FAMILIES:
+        if fa["family"] not in FLAGGED_FAMILIES or fa["family"] in unlike:
             continue
         xa, xb, sa, sb = fa["value"], fb["value"], fa["std"], fb["std"]
         if not all(math.isfinite(v) for v in (xa, xb, sa, sb)) or sa <= 0 or sb <= 0:
