@@ -18,6 +18,7 @@ import warnings
 
 from tqdm import tqdm
 
+from casm_graph.fit.calibration import cross_term_words
 from casm_graph.fit.methods import METHODS, Progress
 from casm_graph.io import mrclam, plaza
 from casm_graph.io.log import LogError
@@ -137,10 +138,8 @@ def _calibrate(args) -> int:
     if len(slopes) > 1:
         print(f"  range start slope {max(slopes, key=lambda t: t[1])[0]:.3f}, the likeliest after the held coarse "
               "rounds of " + ", ".join(f"{s:.3f} (log-likelihood {ll:,.0f})" for s, ll in slopes))
-    cross = m.fit.get("cross_term")
-    if cross:
-        print(f"  turn rate per forward speed {cross['w_per_v']:+.4g} rad/s per m/s (unequal wheels): "
-              + ("kept" if cross["kept"] else "not kept") + f", delta BIC {cross['delta_bic']:,.1f}")
+    if m.fit.get("cross_term"):
+        print("  " + cross_term_words(m.fit["cross_term"]))
     if "regional_motion_noise" in m.effects:
         e = m.effects["regional_motion_noise"]
         for g, (kr, kt, kd, ok) in enumerate(zip(e["k_r"], e["k_t"], e["k_d"], determined(e))):

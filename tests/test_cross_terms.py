@@ -28,7 +28,7 @@ def coupled(rng) -> CommandModel:
 def test_the_turn_map_reads_the_forward_command_through_its_last_coefficient():
     rng = np.random.default_rng(0)
     cm = coupled(rng)
-    assert cm.sizes == (3, 0, 3) and cm.cross and cm.crossed == ["w"]
+    assert cm.sizes == (3, 0, 3) and cm.cross and cm.cross_coefficient("w") is not None
     u = rng.uniform(-0.5, 0.5, size=(50, 2))
     s = np.asarray(cm.scale)
     x = u / s
@@ -113,4 +113,5 @@ def test_the_command_line_records_its_choice(floor, tmp_path, capsys):
     assert m["fit"]["options"]["cross_terms"] is True and set(m["action_model"]["cross"]) == {"w"}
     assert "cross_term" not in m["fit"]
     assert main(["calibrate", str(tmp_path / "log"), "--out", str(tmp_path / "auto"), "--quiet"]) == 0
-    assert "(unequal wheels): not kept" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "turn rate per forward speed (unequal wheels):" in out and ", not kept (delta BIC" in out

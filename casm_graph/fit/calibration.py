@@ -60,6 +60,15 @@ class CalibrateOptions:
                 "command_graph": self.command_graph.to_json()}
 
 
+def cross_term_words(cross: dict) -> str:
+    """One line on the turn map's term in v from model.json's ``fit.cross_term``: its value, std, and whether
+    the calibration kept it."""
+    sd = cross.get("w_per_v_std")
+    return (f"turn rate per forward speed (unequal wheels): {cross['w_per_v']:+.4g} rad/s per m/s"
+            + (f" (std {sd:.2g})" if sd is not None else "") + (", kept" if cross["kept"] else ", not kept")
+            + f" (delta BIC {cross['delta_bic']:,.1f})")
+
+
 def read_truth_model(log_dir) -> dict | None:
     """truth_model.json from a simulated bundle, for reports' comparisons only (never for fitting)."""
     if log_dir is None:
@@ -136,12 +145,8 @@ class Calibration:
                  "  motion noise per step: " + ", ".join(f"{s:.3g}" for s in m.motion_noise) + " (m, m, rad)"]
         if m.action.std_summary() is not None:
             lines.append("  {}: {}".format(*m.action.std_summary()))
-        cross = fit.get("cross_term")
-        if cross:
-            sd = cross.get("w_per_v_std")
-            lines.append(f"  turn rate per forward speed (unequal wheels): {cross['w_per_v']:+.4g} rad/s per m/s"
-                         + (f" (std {sd:.2g})" if sd is not None else "") + (", kept" if cross["kept"] else
-                         ", not kept") + f" (delta BIC {cross['delta_bic']:,.1f})")
+        if fit.get("cross_term"):
+            lines.append("  " + cross_term_words(fit["cross_term"]))
         pose_sd = np.sqrt(np.nanmean(self.trajectory["sx"] ** 2 + self.trajectory["sy"] ** 2)) \
             if np.isfinite(self.trajectory["sx"]).any() else float("nan")
         lines.append(f"  trajectory: RMS position std {pose_sd:.3f} m")

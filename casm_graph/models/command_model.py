@@ -97,21 +97,12 @@ class CommandModel:
         return coef[:n], None if std is None else std[:n]
 
     def cross_coefficient(self, command: str) -> tuple[float, float | None] | None:
-        """(coefficient on the other command / its scale, std or None) of the map of ``command``; None where it
-        has none (without ``cross``, and the speed map)."""
+        """(coefficient on v / its scale, std or None) of the map of ``command``; None where it has none (without
+        ``cross``, and every map but the turn map)."""
         coef, std, n = self._map(command)
         if n == len(coef):
             return None
         return float(coef[n]), None if std is None else float(std[n])
-
-    def other(self, command: str) -> str:
-        """The other command of a ``v, w`` pair (the one a cross term reads)."""
-        return self.commands[-1] if command == self.commands[0] else self.commands[0]
-
-    @property
-    def crossed(self) -> list[str]:
-        """The maps that hold a cross term: ``["w"]`` with ``cross``."""
-        return [self.commands[-1]] if self.cross else []
 
     def with_cross(self) -> "CommandModel":
         """This map with the turn map's term in ``v`` added at 0 (itself when it has it, or has no ``v, w``)."""
@@ -193,7 +184,7 @@ class CommandModel:
             return None if a is None else np.asarray(a, float).tolist()
         out = {"command_std": {c: lst(self.coefficients(c)[1]) for c, *_ in self.maps}}
         if self.cross:
-            out["command_cross_std"] = {c: {self.other(c): self.cross_coefficient(c)[1]} for c in self.crossed}
+            out["command_cross_std"] = {"w": {"v": self.cross_coefficient("w")[1]}}
         return out
 
     def std_summary(self) -> tuple[str, str] | None:
@@ -220,9 +211,8 @@ class CommandModel:
                 "std": {c: lst(self.coefficients(c)[1]) for c in names},
                 "command_range": {c: [float(x) for x in r] for c, r in zip(names, self.command_range)},
                 "lag": float(self.lag), "lag_order": int(self.lag_order),
-                **({"cross": {c: {self.other(c): self.cross_coefficient(c)[0]} for c in self.crossed},
-                    "cross_std": {c: {self.other(c): self.cross_coefficient(c)[1]} for c in self.crossed}}
-                   if self.cross else {})}
+                **({"cross": {"w": {"v": self.cross_coefficient("w")[0]}},
+                    "cross_std": {"w": {"v": self.cross_coefficient("w")[1]}}} if self.cross else {})}
 
     @staticmethod
     def coefficients_in_units(am: dict) -> dict[str, tuple[list, list]]:

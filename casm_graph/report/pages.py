@@ -290,14 +290,13 @@ def maps_figure(log: Log, fit: Fit, reference=None):
         ax.hist(c, bins=60, weights=log.dt, color="0.85", label="time at command (s, right axis)")
         ax2 = ax.twinx()
         ax2.plot(grid, grid, "k:", label="nominal (= command)")
-        ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned" + (" at v = 0" if cm.cross_coefficient(
-            name) is not None else ""))
-        if cm.cross_coefficient(name) is not None:          # the turn the forward command adds (unequal wheels)
-            other = cm.commands.index(cm.other(name))
-            typical = float(np.median(log.controls[:, other]))
+        crossed = cm.cross_coefficient(name) is not None
+        ax2.plot(grid, cm.velocities(ctl)[:, k], "C0", lw=2, label="learned" + (" at v = 0" if crossed else ""))
+        if crossed:                          # the turn the forward command adds (unequal wheels)
+            typical = float(np.median(log.controls[:, 0]))
             at = ctl.copy()
-            at[:, other] = typical
-            ax2.plot(grid, cm.velocities(at)[:, k], "C2", lw=1.5, label=f"learned at {cm.other(name)} = {typical:.3g}")
+            at[:, 0] = typical
+            ax2.plot(grid, cm.velocities(at)[:, k], "C2", lw=1.5, label=f"learned at v = {typical:.3g}")
         if reference is not None:
             ax2.plot(grid, reference.velocities(ctl)[:, k], "C3--", lw=2, label="fitted against truth")
         ax.set(xlabel=f"commanded {name} ({unit})", title=f"{AXIS_WORDS[k][0]} map")
@@ -314,8 +313,7 @@ def command_facts(m: Model) -> list[tuple]:
 
     def cross(name):
         term = cm.cross_coefficient(name)
-        o = cm.other(name)
-        return "" if term is None else f"; {term[0]:+.4g} {o}/{cm.scale[cm.commands.index(o)]:.3g}"
+        return "" if term is None else f"; {term[0]:+.4g} v/{cm.scale[0]:.3g}"
 
     return [(f"{map_name(k)} {name}(c)", ", ".join(f"{x:.4g}" for x in cm.coefficients(name)[0])
              + f" (powers of c/{cm.scale[j]:.3g})" + cross(name)) for name, j, k, _ in cm.maps]

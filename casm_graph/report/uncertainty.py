@@ -323,8 +323,7 @@ def _command_table(unc) -> str:
                         f"<td>{c:+.4f} &plusmn; {1.645 * sd:.4f}</td></tr>")
         term = cm.cross_coefficient(cmd)
         if term is not None:
-            o = cm.other(cmd)
-            rows.append(f"<tr><td>{cmd}</td><td>{o} / {cm.scale[cm.commands.index(o)]:.3g}</td>"
+            rows.append(f"<tr><td>{cmd}</td><td>v / {cm.scale[0]:.3g}</td>"
                         f"<td>{term[0]:+.4f} &plusmn; {1.645 * term[1]:.4f}</td></tr>")
     return ("<table><tr><th>map</th><th>term</th><th>coefficient &plusmn; 90 %</th></tr>" + "".join(rows)
             + "</table>")

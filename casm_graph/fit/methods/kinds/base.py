@@ -15,7 +15,7 @@ class ActionKind:
 
     def start_model(self, log: Log, sensor_degree: int = 3, basis: str = "distance", cross: bool = False) -> Model:
         """The paper's start: zero velocities, a flat sensor curve of ``sensor_degree`` in ``basis`` (``cross``:
-        command maps linear in the other command too; a table has none)."""
+        the turn map of ``v, w`` commands also linear in ``v``; a table has none)."""
         raise NotImplementedError
 
     def initialise(self, log: Log, start: Model):
