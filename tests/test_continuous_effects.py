@@ -114,6 +114,8 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     assert "nan" not in " ".join(diag["summary"])            # an unmeasured held-out score is said so, not printed
     false = next(c for c in diag["candidates"] if c["effect"] == "false_detections")
     assert false["delta_bic"] > 0 and false["heldout_nll_drop"] is not None     # scored on folds; none to find
+    assert "sighting_change" not in false                    # scored at the base's poses: it moves no sighting
+    assert 0.0 < lag["sighting_change"] < 10.0               # how far the lag moves the predicted sightings, in sigmas
     pred = diag["predictive"]                                # open-loop error grows with the horizon
     assert pred["horizons_s"][0] == 0 and set(pred["channels"]) == {"reading", "bearing"}
     assert all(v[-1] > v[0] for v in pred["channels"].values())
@@ -125,6 +127,7 @@ def test_diagnose_a_continuous_log(lag_floor, tmp_path):
     shown = "surface_friction" + (f":{friction['order']}" if friction["order"] != 4 else "")   # 4 x 4: the default
     assert f"<td style='text-align:left'>{shown}</td>" in (tmp_path / "diag" / "report.html").read_text()
     assert (tmp_path / "diag" / "report.html").stat().st_size > 10_000
+    assert f"<td>{lag['sighting_change']:.3f}</td>" in (tmp_path / "diag" / "report.html").read_text()
 
 
 def test_a_motion_noise_effect_other_than_regional_is_refused_on_continuous_logs(lag_floor):

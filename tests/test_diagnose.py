@@ -423,6 +423,8 @@ def test_fits_that_change_the_sightings_alike_are_lookalikes():
 
     like = lag * 0.9 + rng.normal(0, 0.3, 2 * n)        # reproduces most of the lag's change
     other = rng.normal(0, 1, 2 * n)                      # an unrelated change
+    assert D.sighting_change(base, pred(lag)) == pytest.approx(np.sqrt(np.mean(lag ** 2)))   # RMS, in sigmas
+    assert np.isnan(D.sighting_change(base, None)) and np.isnan(D.sighting_change(None, pred(lag)))
     assert D.reproduced_share(base, pred(lag), pred(like)) > 0.8
     assert abs(D.reproduced_share(base, pred(lag), pred(other))) < 0.3 or D.reproduced_share(
         base, pred(lag), pred(other)) < 0

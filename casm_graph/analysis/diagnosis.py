@@ -321,6 +321,7 @@ class Candidate:
     screened: bool = False           # not fitted: delta BIC and log-likelihood are the score test's prediction
     implausible: str = ""            # why its fitted parameters cannot happen (Effect.implausible): kept out of verdicts
     prediction: dict | None = field(default=None, repr=False)   # the fit's predicted sightings (look-alike test)
+    change: float = float("nan")     # RMS change the fit makes to the base's predicted sightings, in sigmas
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "channel": self.channel, "delta_bic": self.delta_bic,
@@ -330,7 +331,8 @@ class Candidate:
                 **({"order": self.order, "orders": {str(k): v for k, v in self.orders.items()}}
                    if self.orders else {}), **({"screened": True} if self.screened else {}),
                 **({"confirmed": {str(k): v for k, v in self.confirmed.items()}} if self.confirmed else {}),
-                **({"implausible": self.implausible} if self.implausible else {})}
+                **({"implausible": self.implausible} if self.implausible else {}),
+                **({"sighting_change": self.change} if np.isfinite(self.change) else {})}
 
     @property
     def spec(self) -> str:
@@ -423,13 +425,24 @@ def predicted_sightings(problem, st) -> dict:
             "bearing_sigma": problem.bearing_sigma}
 
 
+def prediction_change(base: dict, p: dict) -> np.ndarray:
+    """The change a fit's predicted sightings ``p`` make to the base's, in the base's sigmas (readings, bearings)."""
+    return np.concatenate([(p["reading"] - base["reading"]) / base["reading_sigma"],
+                           wrap(p["bearing"] - base["bearing"]) / base["bearing_sigma"]])
+
+
+def sighting_change(base: dict | None, p: dict | None) -> float:
+    """RMS over the sightings of the change a fit makes to the base's predictions, in sigmas (NaN without both)."""
+    if base is None or p is None:
+        return float("nan")
+    d = prediction_change(base, p)
+    return float(np.sqrt(np.mean(d ** 2))) if len(d) else float("nan")
+
+
 def reproduced_share(base: dict, a: dict, b: dict) -> float:
     """The share of the change ``a``'s fit makes to the base's predicted sightings that ``b``'s makes too: 1 minus
     the squared difference of the two changes over the square of ``a``'s (in sigmas; 1 when they predict alike)."""
-    def change(p):
-        return np.concatenate([(p["reading"] - base["reading"]) / base["reading_sigma"],
-                               wrap(p["bearing"] - base["bearing"]) / base["bearing_sigma"]])
-    da, db = change(a), change(b)
+    da, db = prediction_change(base, a), prediction_change(base, b)
     size = float(da @ da)
     return float(1.0 - (da - db) @ (da - db) / size) if size > 0 else 0.0
 

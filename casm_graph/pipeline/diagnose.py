@@ -18,8 +18,8 @@ from casm_graph.analysis.before_after import compare, load_before
 from casm_graph.analysis.candidates import bench
 from casm_graph.analysis.correlation import correlation
 from casm_graph.analysis.diagnosis import (DEFAULTS, DiagnoseOptions, Diagnosis, channel_report, discover,
-                                           family_words, lookalike_words, lookalikes, open_loop_error, structures,
-                                           verdict)
+                                           family_words, lookalike_words, lookalikes, open_loop_error, sighting_change,
+                                           structures, verdict)
 from casm_graph.analysis.proposal import ProposalOptions
 from casm_graph.fit import trajectory
 from casm_graph.fit.calibration import Calibration
@@ -72,6 +72,8 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     rep = channel_report(chs, o)
     struct = structures(rep, o)
     cands, skipped, explains, separated_by = part.score(struct)
+    for c in cands:
+        c.change = sighting_change(part.base_prediction, c.prediction)
     v, words = verdict(cands, struct, explains, o, last=part.last, report=rep)
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, part.challenge,
                                o.proposal_challenge, o.lookalike_bic)

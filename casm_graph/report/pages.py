@@ -604,7 +604,8 @@ def diagnosis(path: Path, log: Log, diag) -> None:
         f"{c.delta_bic:.1f}"
         + (f"<br><small>by order: {', '.join(f'{k}: {v:.1f}' for k, v in sorted(c.orders.items()))}</small>"
            if c.orders else "") + "</td>"
-        f"<td>{c.heldout_nll_drop:.1f}</td><td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items() if isinstance(v, (int, float))))}</td>"
+        f"<td>{c.heldout_nll_drop:.1f}</td><td>{'' if not np.isfinite(c.change) else f'{c.change:.3f}'}</td>"
+        f"<td style='text-align:left'>{e(', '.join(f'{k}={v:.4g}' for k, v in c.parameters.items() if isinstance(v, (int, float))))}</td>"
         f"<td style='text-align:left'>"
         + (f"<b>Set aside, not physical:</b> {e(c.implausible)}. " if c.implausible else "")
         + f"{e(c.explanation)}</td></tr>" for c in diag.candidates)
@@ -622,8 +623,10 @@ Strength: omega squared, the share of residual variance a covariate explains (me
 <h2>Candidate effects</h2><p>Sorted by delta BIC (negative favours the effect); held-out: gain in log-likelihood of
 time blocks hidden from the fit. A family (<code>NAME:ORDER</code>) shows the member BIC kept and every member's delta BIC.
 A delta BIC marked &asymp; is the score test's prediction: the candidate was not fitted, its predicted gain
-being too small a share of its BIC penalty.</p>
-<table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>fitted</th><th>physics</th></tr>{cands}</table>
+being too small a share of its BIC penalty. Sightings moved: the RMS change the candidate's fit makes to the predicted
+readings and bearings, in their sigmas (blank where the candidate has no fitted prediction).</p>
+<table><tr><th>effect</th><th>channel</th><th>delta BIC</th><th>held-out gain</th><th>sightings moved</th><th>fitted</th>
+<th>physics</th></tr>{cands}</table>
 {f'<p>Not applicable to this log:</p><ul>{skipped}</ul>' if skipped else ''}
 {_before_after_html(diag)}
 {''.join(sections if not on_field else sections[::-1])}
