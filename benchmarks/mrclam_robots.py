@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: int, effects=(),
-              cross_terms: bool | str = "auto") -> dict:
+              cross_terms: bool | str = "auto", step_heading: str = "start") -> dict:
     bundle = out / f"robot{robot}_log"
     log, _ = mrclam.import_robot(data, robot, bundle)
     if minutes:
@@ -34,7 +34,7 @@ def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: 
         write(log.window(log.t[0], log.t[0] + 60 * minutes), bundle)
     t0 = time.perf_counter()
     log, fit = calibrate_run.run(bundle, out / f"robot{robot}", sensor_degree=degree, effects=tuple(effects),
-                                 cross_terms=cross_terms, force=True)
+                                 cross_terms=cross_terms, step_heading=step_heading, force=True)
     seconds = time.perf_counter() - t0
     ev = groundtruth.evaluate(load(bundle), fit)
     pages.calibration(out / f"robot{robot}" / "report.html", log, fit, evaluation=ev)
@@ -67,6 +67,7 @@ def main(argv=None) -> int:
                    help="calibrate with this effect (repeatable; issue 7's are lens_distortion and actuator_lag)")
     p.add_argument("--cross-terms", default="auto", choices=("auto", "on", "off"),
                    help="the turn map's term in v, as calibrate's option (default auto)")
+    p.add_argument("--step-heading", default="start", choices=("start", "middle"))
     p.add_argument("--out", default="mrclam_runs")
     a = p.parse_args(argv)
     out = Path(a.out)
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
     results = {}
     for r in a.robots:
         results[r] = run_robot(Path(a.data), r, out, a.minutes, a.sensor_degree, a.effect,
-                               {"on": True, "off": False}.get(a.cross_terms, "auto"))
+                               {"on": True, "off": False}.get(a.cross_terms, "auto"), a.step_heading)
         print(table({r: results[r]}).splitlines()[-1], file=sys.stderr, flush=True)
         clean = {q: {k: v for k, v in e.items() if not k.startswith("_")} for q, e in results.items()}
         (out / "summary.json").write_text(json.dumps(clean, indent=2, default=lambda x: np.asarray(x).tolist()))

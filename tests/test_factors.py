@@ -148,3 +148,36 @@ def test_coarse_graph_jacobian_matches_numerical_differentiation():
             return p.jacobian(p.retract(st, (dp, dt)))[1]
         num = (resid(1) - resid(-1)) / (2 * h)
         assert np.abs(num - A[:, col]).max() < 1e-6 * max(1.0, np.abs(num).max()), col
+
+
+@pytest.mark.parametrize("lead", [0.0, 0.5])
+def test_command_displacement_jacobian(lead):
+    """The command factor's derivative with respect to the maps' coefficients, along the start or the middle
+    heading of each step, against central differences."""
+    rng = np.random.default_rng(3)
+    n, k = 4, 9
+    Bv, Bw, By = rng.normal(0, 1, (n, k, 3)), rng.normal(0, 1, (n, k, 2)), rng.normal(0, 1, (n, k, 2))
+    dt = rng.uniform(0.02, 0.2, (n, k))
+    p = rng.normal(0, 0.5, 7)
+    _, J = factors.command.displacement(p, Bv, Bw, dt, By, lead)
+    for i in range(len(p)):
+        h = np.zeros(len(p))
+        h[i] = 1e-6
+        num = (factors.command.displacement(p + h, Bv, Bw, dt, By, lead)[0]
+               - factors.command.displacement(p - h, Bv, Bw, dt, By, lead)[0]) / 2e-6
+        np.testing.assert_allclose(J[:, :, i], num, atol=1e-7)
+
+
+def test_a_step_along_its_middle_heading_follows_the_arc():
+    """A command held over steps drives an arc: stepping along each step's middle heading ends where the arc does
+    to within (w dt)^2 of the distance; along its start heading it falls v w dt / 2 per second to the outside."""
+    v, w, dt, k = 1.5, 0.8, 0.1, 20
+    vel, steps = np.tile([v, 0.0, w], (1, k, 1)), np.full((1, k), dt)
+    T = k * dt
+    arc = np.array([v / w * np.sin(w * T), v / w * (1 - np.cos(w * T))])
+    mid = factors.command.integrate(vel, steps, 0.5)[0][0, :2]
+    start = factors.command.integrate(vel, steps, 0.0)[0][0, :2]
+    assert np.hypot(*(mid - arc)) < (w * dt) ** 2 * v * T
+    assert np.hypot(*(start - arc)) == pytest.approx(v * w * dt / 2 * T, rel=0.2)
+    d, _ = factors.command.displacement(np.array([v, w]), np.ones((1, k, 1)), np.ones((1, k, 1)), steps, lead=0.5)
+    np.testing.assert_allclose(d[0, :2], mid)

@@ -33,7 +33,7 @@ def truth_fit(log: Log, form: CommandModel, knot_dt: float = 1.0, iterations: in
     p = form.params.copy()
     scale = np.ones(3)
     for it in range(iterations):
-        e, J = factors.command.error(P[:-1], P[1:], p, Bv, Bw, lay.seg_dt, By)
+        e, J = factors.command.error(P[:-1], P[1:], p, Bv, Bw, lay.seg_dt, By, form.lead)
         if it == 2:          # per-axis scale from the residuals once the fit has settled
             scale = 1.4826 * np.median(np.abs(e * w), axis=0) + 1e-9
         ww = w / scale

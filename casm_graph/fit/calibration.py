@@ -51,12 +51,14 @@ class CalibrateOptions:
                                        # or "auto": d, and 1/d competing when the fit in d misses near the landmarks
     cross_terms: bool | str = "auto"   # ``v, w`` commands: the turn map also linear in ``v`` (unequal wheels);
                                        # "auto": the graph method keeps it when BIC supports it
+    step_heading: str = "start"        # continuous commands: each step moves along its heading at the start (the
+                                       # paper's step) or the "middle" (the chord of the arc a held command drives)
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,
                 "effects": [e if isinstance(e, str) else e.name for e in self.effects], "regions": self.regions,
                 "max_sensor_degree": self.max_sensor_degree, "sensor_basis": self.sensor_basis,
-                "cross_terms": self.cross_terms, "graph": self.graph.to_json(),
+                "cross_terms": self.cross_terms, "step_heading": self.step_heading, "graph": self.graph.to_json(),
                 "command_graph": self.command_graph.to_json()}
 
 

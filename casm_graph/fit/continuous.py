@@ -158,9 +158,9 @@ def initialise(log: Log, model: Model, options: W.WindowOptions | None = None) -
 # --------------------------------------------------------------------------- the fit
 
 def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1,
-                basis: str = "distance", cross: bool = False) -> Model:
+                basis: str = "distance", cross: bool = False, step_heading: str = "start") -> Model:
     """The paper's start for continuous commands: zero velocity for every command, a flat sensor line; with
-    ``cross`` the turn map of ``v, w`` also linear in ``v``.
+    ``cross`` the turn map of ``v, w`` also linear in ``v``; each step along the heading ``step_heading`` says.
 
     Either channel may be missing from the whole log (range-only or bearing-only sensors); the
     model then records which channels it has (``Model.channels``).
@@ -179,7 +179,7 @@ def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: i
     return Model(action_ids=np.array([], int), velocities=np.zeros((0, 3)), reading_poly=poly,
                  reading_sigma=PAPER_START_READING_SIGMA, bearing_sigma=PAPER_START_BEARING_SIGMA,
                  motion_noise=np.array(PAPER_MOTION_NOISE),
-                 command=for_commands(log.controls, v_degree, w_degree, cross=cross),
+                 command=for_commands(log.controls, v_degree, w_degree, cross=cross, step_heading=step_heading),
                  channels=log.channels, reading_basis=basis)
 
 

@@ -13,6 +13,11 @@ UMBmark's wheel-diameter error). The cross coefficient is the turn map's last en
 (The same wheels' speed term in ``w``, a quarter of the track times the gain difference, is second order; on
 MRCLAM robot 4 it ran to -0.16 and took the speed map 70 % of its range from Vicon's.)
 
+A step moves the robot along its heading at the step's start (``step_heading`` "start", the paper's step) or
+at its middle ("middle": the chord of the arc a command held over the step drives). The first leaves a
+sideways error of v w dt / 2 that a fast robot on slow commands shows (a car at 1-2 m/s on 10-20 Hz commands:
+lateral residuals following the turn rate).
+
 With the ``actuator_lag`` effect the velocity follows ``f(command)`` through ``lag_order`` cascaded
 first-order lags, each of time constant ``lag / lag_order`` (so ``lag`` is the mean delay whatever the
 order), each stage driven by the previous one's mean over the step (order 2: a critically damped drive);
@@ -33,6 +38,7 @@ from casm_graph.models.velocity_table import VelocityTable, json_number
 
 KIND = "command_poly"
 COMMANDS = (("v", "w"), ("vx", "vy", "w"))      # the command columns a map can read: wheeled, omnidirectional
+STEP_HEADINGS = ("start", "middle")             # the heading a step moves along (CommandModel.step_heading)
 AXIS_WORDS = (("speed", "m/s"), ("sideways speed", "m/s"), ("turn rate", "rad/s"))   # what a map gives, by body axis
 
 
@@ -61,6 +67,12 @@ class CommandModel:
     y_coef: np.ndarray = field(default_factory=lambda: np.zeros(0))   # (Dy+1,) sideways map (``vy`` commands only)
     y_std: np.ndarray | None = None
     cross: bool = False                   # the turn map of ``v, w`` also linear in ``v`` (its last coefficient)
+    step_heading: str = "start"           # each step moves along its heading at the start or the "middle"
+
+    @property
+    def lead(self) -> float:
+        """The share of a step's turn made before it moves (:mod:`factors.command`)."""
+        return 0.5 if self.step_heading == "middle" else 0.0
 
     @property
     def params(self) -> np.ndarray:
@@ -114,7 +126,7 @@ class CommandModel:
         """A map of this one's degrees and cross terms sized for ``controls``, ``gain`` times the identity."""
         nv, ny, nw = self.sizes
         return replace(for_commands(controls, nv - 1, nw - 1 - self.cross, gain=gain, y_degree=ny - 1, cross=self.cross),
-                       lag=self.lag, lag_order=self.lag_order)
+                       lag=self.lag, lag_order=self.lag_order, step_heading=self.step_heading)
 
     def with_params(self, p: np.ndarray, std: np.ndarray | None = None) -> "CommandModel":
         p = np.asarray(p, float)
@@ -210,7 +222,7 @@ class CommandModel:
                 "coefficients": {c: lst(self.coefficients(c)[0]) for c in names},
                 "std": {c: lst(self.coefficients(c)[1]) for c in names},
                 "command_range": {c: [float(x) for x in r] for c, r in zip(names, self.command_range)},
-                "lag": float(self.lag), "lag_order": int(self.lag_order),
+                "lag": float(self.lag), "lag_order": int(self.lag_order), "step_heading": self.step_heading,
                 **({"cross": {"w": {"v": self.cross_coefficient("w")[0]}},
                     "cross_std": {"w": {"v": self.cross_coefficient("w")[1]}}} if self.cross else {})}
 
@@ -281,6 +293,9 @@ class CommandModel:
             w.num(w.obj(cross["w"], "action_model.cross.w").get("v"), "action_model.cross.w.v")
         if "lag" in am:
             w.num(am["lag"], "action_model.lag", nonneg=True)
+        if am.get("step_heading", "start") not in STEP_HEADINGS:
+            w.fail("action_model.step_heading", f"is {one_line(repr(am['step_heading']))[:40]}, expected "
+                   + " or ".join(repr(h) for h in STEP_HEADINGS))
         if am.get("lag_order", 1) not in (1, 2):
             w.fail("action_model.lag_order", f"is {one_line(repr(am['lag_order']))[:40]}, expected 1 or 2")
         return cls.from_json(am)
@@ -308,14 +323,16 @@ class CommandModel:
                    v_coef=coef[names[0]], w_coef=coef[names[-1]], v_std=sd[names[0]], w_std=sd[names[-1]],
                    cross=bool(cross),
                    command_range=tuple(tuple(rng.get(c, (0.0, 0.0))) for c in names),
-                   lag=float(am.get("lag", 0.0)), lag_order=int(am.get("lag_order", 1)), commands=names, **side)
+                   lag=float(am.get("lag", 0.0)), lag_order=int(am.get("lag_order", 1)), commands=names,
+                   step_heading=str(am.get("step_heading", "start")), **side)
 
 
 def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,
-                 gain: float = 0.0, y_degree: int | None = None, cross: bool = False) -> CommandModel:
+                 gain: float = 0.0, y_degree: int | None = None, cross: bool = False,
+                 step_heading: str = "start") -> CommandModel:
     """A model sized for ``controls`` (columns ``v, w``, or ``vx, vy, w``: a sideways map of ``y_degree``, default
     ``v_degree``): every map ``gain`` times the identity (0: the paper's zero start); ``cross`` (``v, w`` only)
-    adds the turn map's term in ``v``, at 0."""
+    adds the turn map's term in ``v``, at 0; ``step_heading`` as :class:`CommandModel`'s."""
     controls = np.asarray(controls, float)
     names = COMMANDS[0] if controls.shape[1] == 2 else COMMANDS[1]
     scale = np.max(np.abs(controls), axis=0)
@@ -328,4 +345,4 @@ def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,
         y[1] = gain * scale[1]
     rng = tuple((float(c.min()), float(c.max())) for c in controls.T)
     return CommandModel(scale=tuple(float(x) for x in scale), v_coef=v, w_coef=w, command_range=rng, commands=names,
-                        y_coef=y, cross=cross)
+                        y_coef=y, cross=cross, step_heading=step_heading)

@@ -22,6 +22,7 @@ from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
 from casm_graph.models.effects import get as get_effect
+from casm_graph.models.command_model import STEP_HEADINGS
 from casm_graph.models.effects import unphysical
 from casm_graph.report import pages as report
 from factors.reading import BASES
@@ -53,6 +54,8 @@ def check_request(options: CalibrateOptions) -> list:
         raise LogError(f"--sensor-basis must be one of auto, {', '.join(BASES)} (got {options.sensor_basis!r})")
     if options.cross_terms not in (True, False, "auto"):
         raise LogError(f"cross_terms must be True, False or 'auto' (got {options.cross_terms!r})")
+    if options.step_heading not in STEP_HEADINGS:
+        raise LogError(f"--step-heading must be one of {', '.join(STEP_HEADINGS)} (got {options.step_heading!r})")
     if options.sensor_basis not in ("distance", "auto") and options.method not in ("graph", "graph-em"):
         raise LogError(f"--sensor-basis {options.sensor_basis}: the {options.method} method fits a polynomial in the "
                        f"distance only; use --method graph or graph-em")
@@ -80,7 +83,8 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         return cal
     part = kind(log.action_model_kind)
     part.check(log, options, classes)
-    start = part.start_model(log, options.sensor_degree, start_basis(options), cross=options.cross_terms is True)
+    start = part.start_model(log, options.sensor_degree, start_basis(options), cross=options.cross_terms is True,
+                             step_heading=options.step_heading)
     fit = part.calibrate(log, start, options, classes, progress)
     warn_if_worse(fit, classes)
     warn_if_unphysical(log, fit, classes)
@@ -164,14 +168,15 @@ def warn_if_unphysical(log: Log, fit: Fit, classes: list) -> None:
 def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degree: int = 3,
         effects: tuple = (), seed: int = 0, progress: Progress | None = None,
         regions: str | None = None, force: bool = False, command: str | None = None,
-        max_sensor_degree: int = 6, sensor_basis: str = "auto", cross_terms: bool | str = "auto") -> tuple[Log, Fit | dict]:
+        max_sensor_degree: int = 6, sensor_basis: str = "auto", cross_terms: bool | str = "auto",
+        step_heading: str = "start") -> tuple[Log, Fit | dict]:
     """Load the bundle at ``log_dir``, calibrate it and write the run to ``out``; bad input raises LogError first.
 
     Returns the log and the method's :class:`Fit` (the model dict for the 1-D methods)."""
     checked_out(out, force, inputs=[log_dir])
     options = CalibrateOptions(method=method, sensor_degree=sensor_degree, effects=tuple(effects), seed=seed,
                                regions=regions, max_sensor_degree=max_sensor_degree, sensor_basis=sensor_basis,
-                               cross_terms=cross_terms)
+                               cross_terms=cross_terms, step_heading=step_heading)
     check_request(options)
     log = load(log_dir)
     cal = calibrate(log, options, progress=progress, command=command)

@@ -103,6 +103,7 @@ class CommandPoly(ActionPart):
         bv, by, bw = cm.basis(log.controls, log.dt)
         self.Bv, self.By, self.Bw = bv[lay.seg_idx], by[lay.seg_idx], bw[lay.seg_idx]
         self.nv, self.ny = bv.shape[1], by.shape[1]
+        self.lead = cm.lead
         self.n = len(cm.params)
         self.shape = (self.n,)
         self.seg_region = None
@@ -196,7 +197,7 @@ class CommandPoly(ActionPart):
         v0 = self._velocities(p, self.Bv, self.By, self.Bw)
         if not self.motion_effects:
             return v0
-        _, rel = factors.command.integrate(v0, self.lay.seg_dt)
+        _, rel = factors.command.integrate(v0, self.lay.seg_dt, self.lead)
         c, s = np.cos(start[:, 2])[:, None], np.sin(start[:, 2])[:, None]
         pose = np.stack([start[:, 0:1] + c * rel[..., 0] - s * rel[..., 1],
                          start[:, 1:2] + s * rel[..., 0] + c * rel[..., 1], start[:, 2:3] + rel[..., 2]], axis=-1)
@@ -206,7 +207,7 @@ class CommandPoly(ActionPart):
 
     def _segment_motion(self, p: np.ndarray, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
         """(S, 3) displacement of every segment under map ``p`` and the motion effects at ``theta``."""
-        return factors.command.integrate(self._slot_velocities(p, theta, start), self.lay.seg_dt)[0]
+        return factors.command.integrate(self._slot_velocities(p, theta, start), self.lay.seg_dt, self.lead)[0]
 
     def step_velocities(self, poses, x, theta):
         v = self._slot_velocities(np.asarray(x, float), np.asarray(theta, float), np.asarray(poses)[:-1])
@@ -218,7 +219,8 @@ class CommandPoly(ActionPart):
     def motion(self, poses, x, theta, jacobians=True, parameters=True):
         P = poses
         if not self.motion_effects:
-            e, (Ha, Hb, Hx) = factors.command.error(P[:-1], P[1:], x, self.Bv, self.Bw, self.lay.seg_dt, self.By)
+            e, (Ha, Hb, Hx) = factors.command.error(P[:-1], P[1:], x, self.Bv, self.Bw, self.lay.seg_dt, self.By,
+                                                    self.lead)
             return e, [Ha, Hb], (Hx if parameters else None), None
         rel, Ha, Hb = factors.base.relative(P[:-1], P[1:])
         d = self._segment_motion(x, theta, P[:-1])

@@ -13,9 +13,11 @@ class ActionKind:
 
     name = ""
 
-    def start_model(self, log: Log, sensor_degree: int = 3, basis: str = "distance", cross: bool = False) -> Model:
+    def start_model(self, log: Log, sensor_degree: int = 3, basis: str = "distance", cross: bool = False,
+                    step_heading: str = "start") -> Model:
         """The paper's start: zero velocities, a flat sensor curve of ``sensor_degree`` in ``basis`` (``cross``:
-        the turn map of ``v, w`` commands also linear in ``v``; a table has none)."""
+        the turn map of ``v, w`` commands also linear in ``v``; ``step_heading``: the heading a command step moves
+        along; a table has neither)."""
         raise NotImplementedError
 
     def initialise(self, log: Log, start: Model):

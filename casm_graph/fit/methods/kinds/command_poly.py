@@ -13,8 +13,8 @@ from casm_graph.models.effects.regional_motion_noise import Regions
 class CommandKind(ActionKind):
     name = KIND
 
-    def start_model(self, log, sensor_degree=3, basis="distance", cross=False):
-        return continuous.start_model(log, sensor_degree, basis=basis, cross=cross)
+    def start_model(self, log, sensor_degree=3, basis="distance", cross=False, step_heading="start"):
+        return continuous.start_model(log, sensor_degree, basis=basis, cross=cross, step_heading=step_heading)
 
     def initialise(self, log, start):
         return continuous.initialise(log, start)

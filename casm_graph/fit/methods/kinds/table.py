@@ -78,7 +78,7 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
 class TableKind(ActionKind):
     name = KIND
 
-    def start_model(self, log, sensor_degree=3, basis="distance", cross=False):
+    def start_model(self, log, sensor_degree=3, basis="distance", cross=False, step_heading="start"):
         return paper_start(log, sensor_degree, basis)
 
     def initialise(self, log, start):
@@ -88,6 +88,9 @@ class TableKind(ActionKind):
         return coarse_start(log, start, seed, progress, options=options)
 
     def check(self, log, options, classes):
+        if options.step_heading != "start":
+            raise LogError(f"--step-heading {options.step_heading}: an action table's velocities are the paper's, "
+                           f"per step along its start heading (continuous commands only)")
         for cls in classes:
             why = cls(log).applicable(log)
             if why:
