@@ -135,6 +135,7 @@ def main():
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--gen-args", default="", help="extra wheel_world.py arguments, e.g. '--base-tau 0.002'")
     ap.add_argument("--tag", default="", help="suffix of the case directory")
+    ap.add_argument("--calibrate-args", default="", help="extra calibrate arguments, e.g. '--step-heading middle'")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -156,7 +157,7 @@ def main():
         rec["world"] = {"track": world["robot"]["track"], "gains": [world["robot"]["gain_l"], world["robot"]["gain_r"]],
                         "vmax": world["robot"]["vmax"], "deadband": world["robot"]["deadband"],
                         "effect": world["effect"], "n_obs": world["n_observations"]}
-        cmd = [CASM, "calibrate", log, "--out", runp, "--quiet"]
+        cmd = [CASM, "calibrate", log, "--out", runp, "--quiet"] + a.calibrate_args.split()
         rec["calibrate_cmd"] = " ".join(cmd)
         rc, err, sec = run(cmd, env)
         rec["calibrate_rc"], rec["calibrate_s"] = rc, round(sec, 1)
