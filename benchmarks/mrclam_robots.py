@@ -19,6 +19,7 @@ import numpy as np
 from casm_graph.analysis import groundtruth
 from casm_graph.io import mrclam
 from casm_graph.io.log import load
+from casm_graph.models.command_model import STEP_HEADINGS
 from casm_graph.pipeline import calibrate as calibrate_run
 from casm_graph.report import pages
 
@@ -67,7 +68,8 @@ def main(argv=None) -> int:
                    help="calibrate with this effect (repeatable; issue 7's are lens_distortion and actuator_lag)")
     p.add_argument("--cross-terms", default="auto", choices=("auto", "on", "off"),
                    help="the turn map's term in v, as calibrate's option (default auto)")
-    p.add_argument("--step-heading", default="start", choices=("start", "middle"))
+    p.add_argument("--step-heading", default="start", choices=STEP_HEADINGS,
+                   help="the heading a command step moves along, as calibrate's option (default start)")
     p.add_argument("--out", default="mrclam_runs")
     a = p.parse_args(argv)
     out = Path(a.out)

@@ -22,6 +22,7 @@ from casm_graph.fit.calibration import cross_term_words
 from casm_graph.fit.methods import METHODS, Progress
 from casm_graph.io import mrclam, plaza
 from casm_graph.io.log import LogError
+from casm_graph.models.command_model import STEP_HEADINGS
 from casm_graph.io.output import atomic_dir, checked_out, discard_partial
 from casm_graph.models.effects import catalog, proposal
 from casm_graph.models.effects.regional_motion_noise import determined
@@ -266,7 +267,7 @@ def parser() -> argparse.ArgumentParser:
                    help="continuous v,w commands: the turn map also linear in v (turn rate += c v), the turn a "
                         "differential drive's unequal wheels add to every forward command; auto (default): the "
                         "graph method keeps it when BIC supports it; off: each map reads its own command only")
-    c.add_argument("--step-heading", default="start", choices=("start", "middle"),
+    c.add_argument("--step-heading", default="start", choices=STEP_HEADINGS,
                    help="continuous commands: each command step moves the robot along its heading at the step's "
                         "start (the paper's step, default) or its middle (the chord of the arc a command held over "
                         "the step drives: a fast robot on slow commands, as a car at 1-2 m/s on 10 Hz commands)")

@@ -3,8 +3,8 @@
 Between two poses the robot ran k command steps; step j moves it forward by f_v(c_j) dt_j along
 the heading it had at the step's start (``lead`` 0, the paper's step) or at its middle (``lead`` 0.5: the
 chord of the arc a command held over the step drives, exact to second order), sideways by f_y(c_j) dt_j (an
-omnidirectional robot's ``vy`` map; none for ``v, w``) and turns it by f_w(c_j) dt_j. With f_v = Bv a, f_y = By c and f_w = Bw b
-linear in the parameters ``p = [a, c, b]``, the predicted displacement and its derivative are sums
+omnidirectional robot's ``vy`` map; none for ``v, w``) and turns it by f_w(c_j) dt_j. With f_v = Bv a,
+f_y = By c and f_w = Bw b linear in the parameters ``p = [a, c, b]``, the predicted displacement and its derivative are sums
 over the steps; segments are padded to a common length with dt = 0.
 """
 from __future__ import annotations
@@ -55,7 +55,8 @@ def integrate(v: np.ndarray, dt: np.ndarray, lead: float = 0.0) -> np.ndarray:
     pose of every step's start in that frame."""
     turn = v[..., 2] * dt
     phi = np.cumsum(turn, axis=1) - turn
-    c, s = np.cos(phi + lead * turn), np.sin(phi + lead * turn)
+    along = phi + lead * turn
+    c, s = np.cos(along), np.sin(along)
     dx = (c * v[..., 0] - s * v[..., 1]) * dt
     dy = (s * v[..., 0] + c * v[..., 1]) * dt
     x, y = np.cumsum(dx, axis=1), np.cumsum(dy, axis=1)

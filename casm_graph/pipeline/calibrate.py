@@ -21,8 +21,8 @@ from casm_graph.fit.result import LIKELIHOOD_DROP
 from casm_graph.io.identifiability import check_identifiable
 from casm_graph.io.log import Log, LogError, load
 from casm_graph.io.output import checked_out
-from casm_graph.models.effects import get as get_effect
 from casm_graph.models.command_model import STEP_HEADINGS
+from casm_graph.models.effects import get as get_effect
 from casm_graph.models.effects import unphysical
 from casm_graph.report import pages as report
 from factors.reading import BASES
