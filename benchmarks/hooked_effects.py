@@ -30,7 +30,7 @@ def position_rms(log, cal) -> float:
     return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
-def one(effect: str, seed: int, minutes: float) -> dict:
+def one(effect: str, seed: int, minutes: float, step_heading: str = "auto") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp) / "log"
         generate(d, kind="continuous", minutes=minutes, seed=seed, effect=None if effect == "none" else effect,
@@ -38,7 +38,7 @@ def one(effect: str, seed: int, minutes: float) -> dict:
         truth = json.loads((d / "world_truth.json").read_text())
         log = cg.load_log(d)
         t = time.perf_counter()
-        cal = cg.calibrate(log)
+        cal = cg.calibrate(log, step_heading=step_heading)
         tc = time.perf_counter() - t
         t = time.perf_counter()
         diag = cg.diagnose(log, cal)
@@ -51,7 +51,7 @@ def one(effect: str, seed: int, minutes: float) -> dict:
         add = (diag.proposal_effect() if diag.proposal else
                diag.to_add() if diag.verdict != "none" and not diag.verdict.startswith("unexplained") else None)
         if add is not None:
-            cal2 = cg.calibrate(log, effects=[add])
+            cal2 = cg.calibrate(log, effects=[add], step_heading=step_heading)
             name = add.partition(":")[0] if isinstance(add, str) else add.name
             after = cg.diagnose(log, cal2, before=diag)
             row.update(added=name, fitted=cal2.model.effects.get(name),
@@ -67,10 +67,12 @@ def main():
                                                      "heading_speed"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--minutes", type=float, default=4.0)
+    ap.add_argument("--step-heading", default="auto", choices=("auto", "start", "middle"),
+                    help="the heading a command step moves along, as calibrate's option (default auto)")
     args = ap.parse_args()
     for effect in args.effects:
         for seed in args.seeds:
-            print(json.dumps(one(effect, seed, args.minutes), default=float), flush=True)
+            print(json.dumps(one(effect, seed, args.minutes, args.step_heading), default=float), flush=True)
 
 
 if __name__ == "__main__":

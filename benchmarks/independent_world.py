@@ -58,7 +58,7 @@ def addable(effect: str | None, log) -> bool:
 
 
 def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Path, min_range: float = 0.3,
-          sensor_basis: str = "auto", options: cg.DiagnoseOptions | None = None) -> dict:
+          sensor_basis: str = "auto", options: cg.DiagnoseOptions | None = None, step_heading: str = "auto") -> dict:
     """One world (sightings no closer than ``min_range``): calibrate (the sensor curve in ``sensor_basis``),
     diagnose (as ``options`` say), add the named (or hidden) effect, diagnose again."""
     t0 = time.perf_counter()
@@ -70,11 +70,12 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
     log = cg.load_log(workdir / "log")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        base = cg.calibrate(log, seed=seed, sensor_basis=sensor_basis)
+        base = cg.calibrate(log, seed=seed, sensor_basis=sensor_basis, step_heading=step_heading)
         options = options or cg.DiagnoseOptions()
         d1 = cg.diagnose(log, base, options=options)
         add = d1.to_add() if d1.verdict in CATALOG else (effect if addable(effect, log) else None)
         row = {"kind": kind, "effect": effect or "none", "min_range": min_range, "sensor_basis": sensor_basis,
+               "step_heading": step_heading,
                "basis": base.model.reading_basis, "strength": truth.get("strength"),
                "seed": seed, "minutes": minutes, "long_run_seconds": options.long_run_seconds, "verdict": d1.verdict,
                "lookalikes": [g["effects"] for g in d1.lookalikes],
@@ -82,7 +83,7 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
                                "order": c.order} for c in d1.candidates[:4]],
                "error_before": position_rms(base, log), "added": add}
         if add is not None:
-            fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis)
+            fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis, step_heading=step_heading)
             d2 = cg.diagnose(log, fixed, before=d1, options=options)
             row.update(verdict_after=d2.verdict, error_after=position_rms(fixed, log),
                        predictive=d2.before_after.get("predictive") if d2.before_after else None)
@@ -130,6 +131,8 @@ def main():
     ap.add_argument("--sensor-basis", default="auto", choices=("auto", "distance", "inverse_distance"))
     ap.add_argument("--long-run-seconds", type=float, default=cg.DiagnoseOptions.long_run_seconds,
                     help="DiagnoseOptions.long_run_seconds: the motion residuals' long-run variance over this lag")
+    ap.add_argument("--step-heading", default="auto", choices=("auto", "start", "middle"),
+                    help="the heading a command step moves along, as calibrate's option (default auto)")
     ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     if args.table:
@@ -143,7 +146,7 @@ def main():
                     with tempfile.TemporaryDirectory() as w:
                         row = trial(kind, None if effect == "none" else effect, seed, args.minutes, Path(w),
                                     args.min_range, args.sensor_basis,
-                                    cg.DiagnoseOptions(long_run_seconds=args.long_run_seconds))
+                                    cg.DiagnoseOptions(long_run_seconds=args.long_run_seconds), args.step_heading)
                     rows.append(row)
                     f.write(json.dumps(row, default=float) + "\n")
                     f.flush()

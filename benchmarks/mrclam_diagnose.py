@@ -23,13 +23,14 @@ from casm_graph.pipeline import calibrate as calibrate_run
 from casm_graph.pipeline import diagnose as diagnose_run
 
 
-def run_robot(data: Path, robot: int, out: Path) -> dict:
+def run_robot(data: Path, robot: int, out: Path, step_heading: str = "auto") -> dict:
     bundle = out / f"robot{robot}_log"
     mrclam.import_robot(data, robot, bundle)
-    _, base = calibrate_run.run(bundle, out / f"robot{robot}")
+    _, base = calibrate_run.run(bundle, out / f"robot{robot}", step_heading=step_heading)
     diag = diagnose_run.run(bundle, out / f"robot{robot}" / "model.json", out / f"robot{robot}_diag")
     added = [c.effect for c in diag.candidates if c.delta_bic <= BIC_SUPPORT]
-    _, after = calibrate_run.run(bundle, out / f"robot{robot}_effects", effects=added) if added else (None, base)
+    _, after = (calibrate_run.run(bundle, out / f"robot{robot}_effects", effects=added, step_heading=step_heading)
+                if added else (None, base))
     log = load(bundle)
     ev = {name: groundtruth.evaluate(log, f) for name, f in (("base", base), ("after", after))}
     return {"verdict": diag.verdict, "summary": diag.words,
@@ -48,6 +49,8 @@ def main(argv=None) -> int:
     p.add_argument("--data", default=str(mrclam.find_data()))
     p.add_argument("--robots", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     p.add_argument("--out", default="mrclam_diag")
+    p.add_argument("--step-heading", default="auto", choices=("auto", "start", "middle"),
+                    help="the heading a command step moves along, as calibrate's option (default auto)")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -57,7 +60,7 @@ def main(argv=None) -> int:
           "identity-model graph m | ratio base -> after |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in a.robots:
-        e = res[r] = run_robot(Path(a.data), r, out)
+        e = res[r] = run_robot(Path(a.data), r, out, a.step_heading)
         s = "; ".join(f"{x['channel']} {x['kind']} vs {x['name']} {x['strength']:.3f}" for x in e["structure"]) or "none"
         c = "; ".join(f"{x['effect']} {x['delta_bic']:.0f} ({', '.join(f'{k} {v:.3g}' for k, v in x['parameters'].items() if isinstance(v, float))})"
                       for x in e["candidates"])

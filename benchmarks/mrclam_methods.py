@@ -32,7 +32,8 @@ from casm_graph.io import mrclam  # noqa: E402
 METHODS = ("graph", "graph-em", "ekfs-em-learned", "ekfs-em")
 
 
-def one(data: Path, robot: int, minutes: float | None, floor_seed: int | None = None, methods=METHODS) -> dict:
+def one(data: Path, robot: int, minutes: float | None, floor_seed: int | None = None, methods=METHODS,
+        step_heading: str = "auto") -> dict:
     if floor_seed is not None:
         log, _ = cg.simulate("floor", minutes=minutes or 4, seed=floor_seed)
     else:
@@ -43,7 +44,7 @@ def one(data: Path, robot: int, minutes: float | None, floor_seed: int | None = 
     for m in methods:
         t = time.perf_counter()
         method, _, basis = m.partition(":")
-        cal = cg.calibrate(log, method=method, sensor_basis=basis or "auto")
+        cal = cg.calibrate(log, method=method, sensor_basis=basis or "auto", step_heading=step_heading)
         v = cal.model.command.velocities(log.controls, log.dt)
         tr = cal.trajectory
         pos = float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
@@ -75,6 +76,8 @@ def main(argv=None) -> int:
                     help="METHOD or METHOD:BASIS (graph always runs first, with the data's curve; the others are "
                          "compared with it)")
     ap.add_argument("--json")
+    ap.add_argument("--step-heading", default="auto", choices=("auto", "start", "middle"),
+                    help="the heading a command step moves along, as calibrate's option (default auto)")
     a = ap.parse_args(argv)
     bad = [m for m in a.methods if m.partition(":")[0] not in METHODS]
     if bad:
@@ -84,7 +87,8 @@ def main(argv=None) -> int:
     print("| log | method | speed / turn map vs graph, % of range | speed / turn map vs Vicon's, % | position RMS m | s |")
     print("|---|---|---:|---:|---:|---:|")
     for r in (["floor"] if a.floor_seed is not None else a.robots):
-        rows[r] = one(Path(a.data), r, a.minutes, a.floor_seed, ["graph"] + [m for m in a.methods if m != "graph"])
+        rows[r] = one(Path(a.data), r, a.minutes, a.floor_seed, ["graph"] + [m for m in a.methods if m != "graph"],
+                      a.step_heading)
         for m, e in rows[r].items():
             print(f"| {r} | {m} | {100 * e['speed_vs_graph']:.1f} / {100 * e['turn_vs_graph']:.1f} | "
                   f"{100 * e['speed_vs_vicon']:.1f} / {100 * e['turn_vs_vicon']:.1f} | "

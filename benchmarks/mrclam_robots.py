@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def run_robot(data: Path, robot: int, out: Path, minutes: float | None, degree: int, effects=(),
-              cross_terms: bool | str = "auto", step_heading: str = "start") -> dict:
+              cross_terms: bool | str = "auto", step_heading: str = "auto") -> dict:
     bundle = out / f"robot{robot}_log"
     log, _ = mrclam.import_robot(data, robot, bundle)
     if minutes:
@@ -68,8 +68,8 @@ def main(argv=None) -> int:
                    help="calibrate with this effect (repeatable; issue 7's are lens_distortion and actuator_lag)")
     p.add_argument("--cross-terms", default="auto", choices=("auto", "on", "off"),
                    help="the turn map's term in v, as calibrate's option (default auto)")
-    p.add_argument("--step-heading", default="start", choices=STEP_HEADINGS,
-                   help="the heading a command step moves along, as calibrate's option (default start)")
+    p.add_argument("--step-heading", default="auto", choices=("auto", *STEP_HEADINGS),
+                   help="the heading a command step moves along, as calibrate's option (default auto: the middle)")
     p.add_argument("--out", default="mrclam_runs")
     a = p.parse_args(argv)
     out = Path(a.out)

@@ -47,6 +47,8 @@ def main():
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5])
     ap.add_argument("--minutes", type=float, default=4.0)
     ap.add_argument("--methods", nargs="+", default=["graph", "graph-em", "graph-em:inverse_distance", "ekfs-em"])
+    ap.add_argument("--step-heading", default="auto", choices=("auto", "start", "middle"),
+                    help="the heading a command step moves along, as calibrate's option (default auto)")
     args = ap.parse_args()
     print("| method | seed | forward / sideways / turn map, % of range | sensor curve | curve RMS px | position RMS m |")
     print("|---|---|---|---|---:|---:|")
@@ -58,7 +60,8 @@ def main():
                 method, _, basis = spec.partition(":")
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    e = errors(log, truth, cg.calibrate(log, method=method, seed=seed, sensor_basis=basis or "auto"))
+                    e = errors(log, truth, cg.calibrate(log, method=method, seed=seed, sensor_basis=basis or "auto",
+                                                        step_heading=args.step_heading))
                 print(f"| {spec} | {seed} | {' / '.join(f'{100 * x:.1f}' for x in e['maps'])} | degree "
                       f"{e['degree']} in {'1/d' if e['basis'] == 'inverse_distance' else 'd'} | {e['curve']:.2f} | "
                       f"{e['position']:.3f} |", flush=True)

@@ -34,13 +34,14 @@ def heading_rms(cal, log) -> float:
     return float(np.sqrt(np.mean(d ** 2)))
 
 
-def one(effect: str, seed: int, minutes: float, kind: str = "table", cross_terms="auto") -> dict:
+def one(effect: str, seed: int, minutes: float, kind: str = "table", cross_terms="auto",
+        step_heading: str = "auto") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         W.generate(tmp, kind=kind, minutes=minutes, seed=seed, effect=None if effect == "none" else effect,
                    min_range=0.8)
         truth = json.loads((Path(tmp) / "world_truth.json").read_text())
         log = cg.load_log(tmp)
-    cal = cg.calibrate(log, cross_terms=cross_terms)
+    cal = cg.calibrate(log, cross_terms=cross_terms, step_heading=step_heading)
     diag = cg.diagnose(log, cal)
     ct = cal.model.fit.get("cross_term") or {}
     row = {"effect": effect, "seed": seed, "strength": truth["strength"], "geometry": truth["geometry"],
@@ -49,7 +50,7 @@ def one(effect: str, seed: int, minutes: float, kind: str = "table", cross_terms
            "strongest_t": strongest_t(diag.proposal),
            "position_rms": [position_rms(cal, log)], "heading_rms": [heading_rms(cal, log)]}
     if diag.proposal:
-        cal2 = cg.calibrate(log, effects=[diag.proposal_effect()], cross_terms=cross_terms)
+        cal2 = cg.calibrate(log, effects=[diag.proposal_effect()], cross_terms=cross_terms, step_heading=step_heading)
         after = cg.diagnose(log, cal2, before=diag)
         row.update(fitted=equation(cal2.model.effects["proposal"]), verdict_after=after.verdict)
         row["position_rms"].append(position_rms(cal2, log))
@@ -66,10 +67,13 @@ def main():
     ap.add_argument("--cross-terms", choices=("auto", "on", "off"), default="auto",
                     help="calibrate's cross_terms (continuous logs: the turn map's term in v)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--step-heading", default="auto", choices=("auto", "start", "middle"),
+                    help="the heading a command step moves along, as calibrate's option (default auto)")
     a = ap.parse_args()
     for effect in a.effects:
         for seed in a.seeds:
-            row = one(effect, seed, a.minutes, a.kind, {"on": True, "off": False}.get(a.cross_terms, "auto"))
+            row = one(effect, seed, a.minutes, a.kind, {"on": True, "off": False}.get(a.cross_terms, "auto"),
+                      a.step_heading)
             held = "" if row["turn_per_speed"] is None else f"turn map's term in v {row['turn_per_speed']:.3f}; "
             print(f"{effect} seed {seed} (s={row['strength']}): {held}{row['verdict']}; proposal {row['proposal']} "
                   f"(strongest |t| {row['strongest_t']}); "

@@ -267,10 +267,10 @@ def parser() -> argparse.ArgumentParser:
                    help="continuous v,w commands: the turn map also linear in v (turn rate += c v), the turn a "
                         "differential drive's unequal wheels add to every forward command; auto (default): the "
                         "graph method keeps it when BIC supports it; off: each map reads its own command only")
-    c.add_argument("--step-heading", default="start", choices=STEP_HEADINGS,
-                   help="continuous commands: each command step moves the robot along its heading at the step's "
-                        "start (the paper's step, default) or its middle (the chord of the arc a command held over "
-                        "the step drives: a fast robot on slow commands, as a car at 1-2 m/s on 10 Hz commands)")
+    c.add_argument("--step-heading", default="auto", choices=("auto", *STEP_HEADINGS),
+                   help="the heading each step moves the robot along: its start (the paper's step) or its middle "
+                        "(the chord of the arc a command held over the step drives); auto (default): an action "
+                        "table's steps the start, continuous commands' the middle")
     c.add_argument("--regions", default=None, metavar="NX,NY[,X0,Y0,X1,Y1]",
                    help="grid of the regional_motion_noise effect (default 3,2 around the landmarks)")
     c.add_argument("--seed", type=int, default=0, help="seed of the randomised trace estimates")

@@ -49,6 +49,16 @@ def displacement(p: np.ndarray, Bv: np.ndarray, Bw: np.ndarray, dt: np.ndarray, 
     return d, J
 
 
+def turned(d: np.ndarray, lead: float) -> np.ndarray:
+    """(n, 3) steps' displacements ``d`` (velocity times time, body frame) moved along the heading ``lead`` of their
+    own turn on: each step's displacement in its start frame (``-lead`` takes it back)."""
+    d = np.asarray(d, float)
+    if not lead:
+        return d
+    z = np.exp(1j * lead * d[:, 2]) * (d[:, 0] + 1j * d[:, 1])
+    return np.column_stack([z.real, z.imag, d[:, 2]])
+
+
 def integrate(v: np.ndarray, dt: np.ndarray, lead: float = 0.0) -> np.ndarray:
     """(n, 3) displacement in the start frame of steps with body velocities ``v`` (n, k, 3), each step along
     the heading ``lead`` of its turn on (as :func:`displacement`; lateral velocity allowed), and the (n, k, 3)

@@ -106,7 +106,7 @@ def test_calibrate_in_memory_then_save_as_the_command_does(bundle, cal, tmp_path
     m = json.loads((tmp_path / "run" / "model.json").read_text())
     assert m["fit"]["options"] == {"method": "graph", "sensor_degree": 3, "seed": 0, "effects": [], "regions": None,
                                    "max_sensor_degree": 6, "sensor_basis": "auto", "cross_terms": "auto",
-                                   "step_heading": "start", "graph": {"coarse_stride": 10, "coarse_rounds": 6, "coarse_iterations": 5,
+                                   "step_heading": "auto", "graph": {"coarse_stride": 10, "coarse_rounds": 6, "coarse_iterations": 5,
                                              "coarse_relax": 1.0, "realias_after": [2, 4], "full_iterations": 15,
                                              "full_rounds": 2, "sensor_curve": {"material": 0.1, "tail": 4.0,
                                                                                 "suspect_pruned": 0.002, "margin": 10.0}},

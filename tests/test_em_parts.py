@@ -114,7 +114,7 @@ def test_both_action_models_answer_the_same_questions(true_case):
         act = model.action
         p = act.params
         assert model.with_action_params(p + 0.5).action.params == pytest.approx(p + 0.5)
-        moved = act.step_velocities(lg) * lg.dt[:, None]
+        moved = act.step_displacements(lg)
         refit = model.with_action_params(np.zeros_like(p)).fitted_to_steps(lg, moved)
         assert refit.action.params == pytest.approx(p, abs=1e-9)
         assert refit.to_json()["action_model"]["kind"] == act.kind
@@ -123,8 +123,8 @@ def test_both_action_models_answer_the_same_questions(true_case):
 
 def test_each_kind_of_action_model_has_its_calibration_part(true_case):
     """Every action part of the graph has a calibration part and a diagnosis's candidate part of its kind; the
-    calibration part starts a log of that kind with a model of that kind; graph-em's step graph runs each step at the
-    model's own velocity, whichever the kind."""
+    calibration part starts a log of that kind with a model of that kind; graph-em's step graph moves each step as
+    the model does, whichever the kind."""
     log, m = true_case
     floor_log, _ = simulate_floor(FloorConfig(minutes=2, seed=1))
     floor = m.with_action(for_commands(floor_log.controls, 2, 1, gain=1.0).with_params(
@@ -137,7 +137,7 @@ def test_each_kind_of_action_model_has_its_calibration_part(true_case):
         assert isinstance(default_layout(lg, start), ACTIONS[part.name].layout_type)
         lay, seen = step_graph(lg, model)
         assert np.array_equal(lay.knots, np.arange(lg.steps + 1))
-        assert np.allclose(seen.velocities[lay.seg_action], model.step_velocities(lg))
+        assert np.allclose(seen.velocities[lay.seg_action] * lg.dt[:, None], model.step_displacements(lg))
     assert set(m.action.std_json()) == {"velocity_std"} and set(floor.action.std_json()) == {"command_std"}
     for model in (m, floor):       # the figures a fleet's drift follows, read from model.json by the part
         am = model.action.to_json()

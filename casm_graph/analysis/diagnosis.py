@@ -818,4 +818,4 @@ def open_loop_error(problem, st, poses: np.ndarray) -> dict:
         return {ch: np.where(sel & (terms["weight"] > 0.5), terms[ch], np.nan)
                 for ch, sel in (("reading", problem.r_sel), ("bearing", problem.b_sel))}
     return predictive(poses, problem.action.step_velocities(st.poses, st.action, st.theta), problem.log.dt,
-                      residuals)
+                      residuals, lead=problem.action.lead)

@@ -14,14 +14,17 @@ from typing import Callable
 
 import numpy as np
 
+import factors.command
+
 HORIZONS = (0.0, 0.5, 1.0, 2.0, 5.0)      # s; 0 is the smoothed residual itself
 
 
-def open_loop(poses: np.ndarray, velocity: np.ndarray, dt: np.ndarray, n: int) -> np.ndarray:
+def open_loop(poses: np.ndarray, velocity: np.ndarray, dt: np.ndarray, n: int, lead: float = 0.0) -> np.ndarray:
     """(T+1, 3) poses: pose k predicted from the smoothed pose ``n`` steps earlier (from pose 0 for the first
-    ``n``), integrating the model's body ``velocity`` (T, 3) over the steps between, heading held per step."""
+    ``n``), integrating the model's body ``velocity`` (T, 3) over the steps between, each step along its heading
+    ``lead`` of its turn on (:func:`factors.command.turned`)."""
     poses = np.asarray(poses, float)
-    inc = np.asarray(velocity, float) * np.asarray(dt, float)[:, None]
+    inc = factors.command.turned(np.asarray(velocity, float) * np.asarray(dt, float)[:, None], lead)
     big = np.concatenate([[0.0], np.cumsum(inc[:, 2])])            # the model's own heading from an origin
     path = np.concatenate([[0j], np.cumsum(np.exp(1j * big[:-1]) * (inc[:, 0] + 1j * inc[:, 1]))])
     k = np.arange(len(poses))
@@ -40,7 +43,7 @@ def robust_scale(r: np.ndarray) -> float:
 
 
 def predictive(poses: np.ndarray, velocity: np.ndarray, dt: np.ndarray,
-               residuals: Callable[[np.ndarray], dict], horizons=HORIZONS) -> dict:
+               residuals: Callable[[np.ndarray], dict], horizons=HORIZONS, lead: float = 0.0) -> dict:
     """Error of the sightings predicted open-loop over each horizon, per channel.
 
     ``poses`` (T+1, 3) are the smoothed poses at every step, ``velocity`` (T, 3) the model's body velocity
@@ -53,7 +56,7 @@ def predictive(poses: np.ndarray, velocity: np.ndarray, dt: np.ndarray,
     hs = [float(h) for h in horizons if h <= 0.1 * span]
     out = {"horizons_s": hs, "channels": {}}
     for h in hs:
-        for ch, r in residuals(open_loop(poses, velocity, dt, int(round(h / step)))).items():
+        for ch, r in residuals(open_loop(poses, velocity, dt, int(round(h / step)), lead)).items():
             if np.isfinite(r).any():
                 out["channels"].setdefault(ch, []).append(robust_scale(r))
     return out

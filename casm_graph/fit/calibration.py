@@ -51,8 +51,9 @@ class CalibrateOptions:
                                        # or "auto": d, and 1/d competing when the fit in d misses near the landmarks
     cross_terms: bool | str = "auto"   # ``v, w`` commands: the turn map also linear in ``v`` (unequal wheels);
                                        # "auto": the graph method keeps it when BIC supports it
-    step_heading: str = "start"        # continuous commands: each step moves along its heading at the start (the
-                                       # paper's step) or the "middle" (the chord of the arc a held command drives)
+    step_heading: str = "auto"         # the heading a command step moves along: "start" (the paper's step), "middle"
+                                       # (the chord of the arc a held command drives) or "auto": an action table's
+                                       # steps the start, continuous commands' the middle
 
     def to_json(self) -> dict:
         return {"method": self.method, "sensor_degree": self.sensor_degree, "seed": self.seed,

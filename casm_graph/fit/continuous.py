@@ -130,13 +130,13 @@ def gate(log: Log, poses_at_obs: np.ndarray, model: Model, z: float = robust.GAT
 
 
 def dead_reckon(controls: np.ndarray, dt: np.ndarray, model: Model, start: np.ndarray) -> np.ndarray:
-    """(T+1, 3) poses integrating the command model from ``start`` (heading held over each step)."""
-    return W.dead_reckon_steps(model.command.velocities(controls, dt), dt, start)
+    """(T+1, 3) poses integrating the command model from ``start``, each step along the model's step heading."""
+    return W.dead_reckon_steps(model.command.velocities(controls, dt), dt, start, model.command.lead)
 
 
 def fill_in(log: Log, model: Model, knots: np.ndarray, knot_poses: np.ndarray) -> np.ndarray:
     """(T+1, 3) poses: each knot-to-knot stretch dead-reckoned, its closure error spread linearly."""
-    return G.fill_between(knots, knot_poses, model.step_velocities(log) * log.dt[:, None])
+    return G.fill_between(knots, knot_poses, model.step_displacements(log))
 
 
 # --------------------------------------------------------------------------- global start
@@ -158,7 +158,7 @@ def initialise(log: Log, model: Model, options: W.WindowOptions | None = None) -
 # --------------------------------------------------------------------------- the fit
 
 def start_model(log: Log, sensor_degree: int = 3, v_degree: int = 2, w_degree: int = 1,
-                basis: str = "distance", cross: bool = False, step_heading: str = "start") -> Model:
+                basis: str = "distance", cross: bool = False, step_heading: str = "middle") -> Model:
     """The paper's start for continuous commands: zero velocity for every command, a flat sensor line; with
     ``cross`` the turn map of ``v, w`` also linear in ``v``; each step along the heading ``step_heading`` says.
 

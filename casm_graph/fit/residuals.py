@@ -24,29 +24,14 @@ from casm_graph.models.model import Model
 LJUNG_BOX_LAGS = 20
 
 
-def displacement(v: np.ndarray, k: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """(n, 3) predicted start-frame displacement of velocities ``v`` (n, 3) held for ``k`` steps of ``dt``.
-
-    Vectorised twin of :func:`factors.action.displacement` (sum_j R(j w dt) v dt, exact).
-    """
-    k = np.asarray(k, float)
-    phi = v[:, 2] * dt
-    z = np.exp(1j * phi)
-    small = np.abs(phi) < 1e-9
-    with np.errstate(invalid="ignore", divide="ignore"):
-        geo = np.where(small, k, (1 - z ** k) / np.where(small, 1.0, 1 - z))
-    a, b = geo.real, geo.imag
-    return np.column_stack([dt * (a * v[:, 0] - b * v[:, 1]), dt * (b * v[:, 0] + a * v[:, 1]), k * phi])
-
-
 def step_motion(poses: np.ndarray, log: Log, model: Model) -> np.ndarray:
     """(T, 3) measured minus predicted displacement of every step (``poses`` (T+1, 3)) under the action model's
-    velocities, start body frame: any kind of action model, its effects left out."""
+    steps, start body frame: any kind of action model, its effects left out."""
     a, b = poses[:-1], poses[1:]
     c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
     ex, ey = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
     meas = np.column_stack([c * ex + s * ey, -s * ex + c * ey, b[:, 2] - a[:, 2]])
-    r = meas - displacement(model.step_velocities(log), np.ones(log.steps), log.dt)
+    r = meas - model.step_displacements(log)
     r[:, 2] = wrap(r[:, 2])
     return r
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+import factors.command
 from casm_graph.fit.locate import grid_cell, locate
 from casm_graph.fit.residuals import distances
 from casm_graph.graph import robust
@@ -96,9 +97,10 @@ def with_model(ws: WindowStart, model: Model, log: Log) -> WindowStart:
     return replace(one(ws), alternatives=[one(a) for a in ws.alternatives])
 
 
-def dead_reckon_steps(velocity: np.ndarray, dt: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """(n+1, 3) poses integrating body velocities (n, 3) over steps ``dt`` from ``start`` (heading held per step)."""
-    poses = G.integrate(start, velocity * dt[:, None])
+def dead_reckon_steps(velocity: np.ndarray, dt: np.ndarray, start: np.ndarray, lead: float = 0.0) -> np.ndarray:
+    """(n+1, 3) poses integrating body velocities (n, 3) over steps ``dt`` from ``start``, each step along its
+    heading ``lead`` of its turn on (:func:`factors.command.turned`)."""
+    poses = G.integrate(start, factors.command.turned(velocity * dt[:, None], lead))
     poses[:, 2] = wrap(poses[:, 2])
     return poses
 

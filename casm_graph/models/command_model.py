@@ -13,10 +13,10 @@ UMBmark's wheel-diameter error). The cross coefficient is the turn map's last en
 (The same wheels' speed term in ``w``, a quarter of the track times the gain difference, is second order; on
 MRCLAM robot 4 it ran to -0.16 and took the speed map 70 % of its range from Vicon's.)
 
-A step moves the robot along its heading at the step's start (``step_heading`` "start", the paper's step) or
-at its middle ("middle": the chord of the arc a command held over the step drives). The first leaves a
-sideways error of v w dt / 2 that a fast robot on slow commands shows (a car at 1-2 m/s on 10-20 Hz commands:
-lateral residuals following the turn rate).
+A step moves the robot along its heading at the step's middle (``step_heading`` "middle", the default: the chord
+of the arc a command held over the step drives) or at its start ("start", the paper's step, which model.json
+files written before the choice used). The start leaves a sideways error of v w dt / 2 that a fast robot on slow
+commands shows (a car at 1-2 m/s on 10-20 Hz commands: lateral residuals following the turn rate).
 
 With the ``actuator_lag`` effect the velocity follows ``f(command)`` through ``lag_order`` cascaded
 first-order lags, each of time constant ``lag / lag_order`` (so ``lag`` is the mean delay whatever the
@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+import factors.command
 from casm_graph.io.log import LogError
 from casm_graph.models.effects.actuator_lag import lagged, memory
 from casm_graph.models.validate import MAX_POLY, Where, one_line
@@ -67,7 +68,7 @@ class CommandModel:
     y_coef: np.ndarray = field(default_factory=lambda: np.zeros(0))   # (Dy+1,) sideways map (``vy`` commands only)
     y_std: np.ndarray | None = None
     cross: bool = False                   # the turn map of ``v, w`` also linear in ``v`` (its last coefficient)
-    step_heading: str = "start"           # each step moves along its heading at the start or the "middle"
+    step_heading: str = "middle"          # each step moves along its heading at the "start" or the middle
 
     @property
     def lead(self) -> float:
@@ -166,9 +167,16 @@ class CommandModel:
         """(T, 3) the map at each step's ``v, w``, through the lag."""
         return self.velocities(log.controls, log.dt)
 
+    def step_displacements(self, log) -> np.ndarray:
+        """(T, 3) each step's displacement in its start frame: the map's velocity times the step's time, along the
+        step's heading (:attr:`lead`)."""
+        return factors.command.turned(self.step_velocities(log) * np.asarray(log.dt, float)[:, None], self.lead)
+
     def fitted_to_steps(self, log, moved: np.ndarray) -> "CommandModel":
-        """The maps' regression on their basis of the steps' displacements ``moved`` (T, 3): forward on the v map,
-        sideways on the vy map (none without ``vy``), turn on the w map, each step weighed by 1 / its length."""
+        """The maps' regression on their basis of the steps' displacements ``moved`` (T, 3, start frame): forward on
+        the v map, sideways on the vy map (none without ``vy``), turn on the w map, each step weighed by 1 / its
+        length."""
+        moved = factors.command.turned(moved, -self.lead)
         dt = np.asarray(log.dt, float)[:, None]
         w = 1.0 / np.sqrt(dt)            # a step's noise grows with its time (as the graph's motion factors say)
         parts = [np.linalg.lstsq(b * dt * w, moved[:, axis] * w[:, 0], rcond=None)[0] if b.shape[1] else np.zeros(0)
@@ -187,8 +195,10 @@ class CommandModel:
 
     def step_table(self, log) -> tuple[np.ndarray, VelocityTable]:
         """(T,) row of each step and the table they index: every step its own row, the map's velocity at that
-        step (graph-em's E-step holds them fixed)."""
-        return np.arange(log.steps), VelocityTable(np.arange(log.steps), self.step_velocities(log))
+        step turned to the step's heading, so that a table's step along its start heading moves as the map's step
+        does (graph-em's E-step holds them fixed)."""
+        return (np.arange(log.steps),
+                VelocityTable(np.arange(log.steps), self.step_displacements(log) / np.asarray(log.dt, float)[:, None]))
 
     def std_json(self) -> dict:
         """The coefficients' posterior std for a JSON file (the uncertainty run's Laplace section)."""
@@ -329,7 +339,7 @@ class CommandModel:
 
 def for_commands(controls: np.ndarray, v_degree: int = 2, w_degree: int = 1,
                  gain: float = 0.0, y_degree: int | None = None, cross: bool = False,
-                 step_heading: str = "start") -> CommandModel:
+                 step_heading: str = "middle") -> CommandModel:
     """A model sized for ``controls`` (columns ``v, w``, or ``vx, vy, w``: a sideways map of ``y_degree``, default
     ``v_degree``): every map ``gain`` times the identity (0: the paper's zero start); ``cross`` (``v, w`` only)
     adds the turn map's term in ``v``, at 0; ``step_heading`` as :class:`CommandModel`'s."""

@@ -91,7 +91,8 @@ class Model:
     def action(self):
         """The action model: a :class:`VelocityTable` of discrete actions, or the continuous commands'
         :class:`casm_graph.models.command_model.CommandModel`. Both answer ``params``, ``with_params``,
-        ``step_velocities``, ``fitted_to_steps``, ``std_summary``, ``describe`` and ``to_json``."""
+        ``step_velocities``, ``step_displacements``, ``fitted_to_steps``, ``std_summary``, ``describe`` and
+        ``to_json``."""
         if self.command is not None:
             return self.command
         return VelocityTable(self.action_ids, self.velocities, self.velocity_std)
@@ -113,6 +114,11 @@ class Model:
         """(T, 3) body-frame velocity of every command step of ``log``: the table's row for its action, or the
         command map at its ``v, w`` (through the map's lag)."""
         return self.action.step_velocities(log)
+
+    def step_displacements(self, log) -> np.ndarray:
+        """(T, 3) each command step's displacement in its start frame under the action model (a map's step along
+        its heading :attr:`CommandModel.lead` of its turn on)."""
+        return self.action.step_displacements(log)
 
     def fitted_to_steps(self, log, moved: np.ndarray) -> "Model":
         """The action model that best explains ``moved`` (T, 3), each step's body-frame displacement, by least

@@ -72,6 +72,11 @@ class VelocityTable:
         """(T, 3) the row of each step's action."""
         return self.velocity_of(log.action)
 
+    def step_displacements(self, log) -> np.ndarray:
+        """(T, 3) each step's displacement: its row times the step's time (the paper's step, along its start
+        heading)."""
+        return self.step_velocities(log) * np.asarray(log.dt, float)[:, None]
+
     def fitted_to_steps(self, log, moved: np.ndarray) -> "VelocityTable":
         """Each action's mean velocity over the steps that ran it (displacements ``moved``, (T, 3)); actions never
         run keep theirs."""

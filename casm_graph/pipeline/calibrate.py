@@ -54,8 +54,9 @@ def check_request(options: CalibrateOptions) -> list:
         raise LogError(f"--sensor-basis must be one of auto, {', '.join(BASES)} (got {options.sensor_basis!r})")
     if options.cross_terms not in (True, False, "auto"):
         raise LogError(f"cross_terms must be True, False or 'auto' (got {options.cross_terms!r})")
-    if options.step_heading not in STEP_HEADINGS:
-        raise LogError(f"--step-heading must be one of {', '.join(STEP_HEADINGS)} (got {options.step_heading!r})")
+    if options.step_heading not in ("auto", *STEP_HEADINGS):
+        raise LogError(f"--step-heading must be one of auto, {', '.join(STEP_HEADINGS)} "
+                       f"(got {options.step_heading!r})")
     if options.sensor_basis not in ("distance", "auto") and options.method not in ("graph", "graph-em"):
         raise LogError(f"--sensor-basis {options.sensor_basis}: the {options.method} method fits a polynomial in the "
                        f"distance only; use --method graph or graph-em")
@@ -83,8 +84,9 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
         return cal
     part = kind(log.action_model_kind)
     part.check(log, options, classes)
+    heading = part.step_heading if options.step_heading == "auto" else options.step_heading
     start = part.start_model(log, options.sensor_degree, start_basis(options), cross=options.cross_terms is True,
-                             step_heading=options.step_heading)
+                             step_heading=heading)
     fit = part.calibrate(log, start, options, classes, progress)
     warn_if_worse(fit, classes)
     warn_if_unphysical(log, fit, classes)
@@ -169,7 +171,7 @@ def run(log_dir: str | Path, out: str | Path, method: str = "graph", sensor_degr
         effects: tuple = (), seed: int = 0, progress: Progress | None = None,
         regions: str | None = None, force: bool = False, command: str | None = None,
         max_sensor_degree: int = 6, sensor_basis: str = "auto", cross_terms: bool | str = "auto",
-        step_heading: str = "start") -> tuple[Log, Fit | dict]:
+        step_heading: str = "auto") -> tuple[Log, Fit | dict]:
     """Load the bundle at ``log_dir``, calibrate it and write the run to ``out``; bad input raises LogError first.
 
     Returns the log and the method's :class:`Fit` (the model dict for the 1-D methods)."""

@@ -58,8 +58,9 @@ def region_params(cfg: FloorConfig) -> np.ndarray:
 
 
 def step(pose: np.ndarray, r: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Translate by ``r`` along the heading, then turn by ``theta`` (poses (n, 3))."""
-    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    """Translate by ``r`` along the heading halfway through the turn ``theta``, and turn (poses (n, 3)): the chord
+    of the arc a velocity held over the step drives."""
+    c, s = np.cos(pose[..., 2] + 0.5 * theta), np.sin(pose[..., 2] + 0.5 * theta)
     return np.stack([pose[..., 0] + r * c, pose[..., 1] + r * s, wrap(pose[..., 2] + theta)], axis=-1)
 
 

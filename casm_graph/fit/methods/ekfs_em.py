@@ -124,7 +124,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
     best = None
     progress.stage("ekfs-em", max_iterations)
     for it in range(max_iterations):
-        u = model.step_velocities(log) * dt[:, None]
+        u = model.step_displacements(log)
         step_sig = ekfs.step_sigmas(sig, log)
         mu_a, P_a, ll, m2 = ekfs.forward(mu0, P0, u, step_sig, ptr, lm, z_r, z_b, poly, s_r, s_b, use)
         if it == 0:
@@ -154,7 +154,7 @@ def fit(log: Log, start: Model, seed: int = 0, progress: Progress | None = None,
         d, d_var = ekfs.action_means(mu_a, P_a, Ld, ed, u, step_sig, variance=learn_action_noise)
         model = model.fitted_to_steps(log, d)
         if learn_action_noise:
-            resid = d - model.step_velocities(log) * dt[:, None]
+            resid = d - model.step_displacements(log)
             resid[:, 2] = wrap(resid[:, 2])
             em = np.sqrt(np.mean((resid ** 2 + d_var) / log.in_median_steps(dt)[:, None], axis=0))   # per median step
             sig = np.maximum(sig * (em / sig) ** overrelax, MIN_ACTION_SIGMA)

@@ -101,7 +101,7 @@ def m_step(log: Log, model: Model, poses, W, X) -> Model:
     through Huber's loss as the E-step's graph weighs them."""
     Ed, Cd = expected_displacement(poses, W, X)
     new = model.fitted_to_steps(log, Ed)
-    res = Ed - new.step_velocities(log) * log.dt[:, None]
+    res = Ed - new.step_displacements(log)
     rules = ACTIONS[model.action.kind].rules(model)          # what graph's noise step assumes of this robot
     steps = log.in_median_steps(log.dt)[:, None]                # the levels are per step of the median length
     motion = rules.apply(np.sqrt(np.mean((res ** 2 + np.diagonal(Cd, axis1=1, axis2=2)) / steps, axis=0)))

@@ -63,6 +63,7 @@ class ActionPart:
 
     name = ""
     noise_rules = NoiseRules()
+    lead = 0.0                   # the share of a step's turn made before it moves (factors.command; a table's: 0)
     layout_type: type            # the layout a graph with this part has (its knots and segments)
     n: int
     shape: tuple

@@ -12,6 +12,7 @@ class ActionKind:
     """The calibration of action models of kind ``name`` (:attr:`casm_graph.io.log.Log.action_model_kind`)."""
 
     name = ""
+    step_heading = "start"       # the heading a step moves along unless the options say (CalibrateOptions.step_heading)
 
     def start_model(self, log: Log, sensor_degree: int = 3, basis: str = "distance", cross: bool = False,
                     step_heading: str = "start") -> Model:

@@ -12,8 +12,9 @@ from casm_graph.models.effects.regional_motion_noise import Regions
 
 class CommandKind(ActionKind):
     name = KIND
+    step_heading = "middle"      # a command held over a step drives an arc; its chord runs along the middle heading
 
-    def start_model(self, log, sensor_degree=3, basis="distance", cross=False, step_heading="start"):
+    def start_model(self, log, sensor_degree=3, basis="distance", cross=False, step_heading="middle"):
         return continuous.start_model(log, sensor_degree, basis=basis, cross=cross, step_heading=step_heading)
 
     def initialise(self, log, start):

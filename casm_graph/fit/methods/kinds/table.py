@@ -88,7 +88,7 @@ class TableKind(ActionKind):
         return coarse_start(log, start, seed, progress, options=options)
 
     def check(self, log, options, classes):
-        if options.step_heading != "start":
+        if options.step_heading == "middle":
             raise LogError(f"--step-heading {options.step_heading}: an action table's velocities are the paper's, "
                            f"per step along its start heading (continuous commands only)")
         for cls in classes:
