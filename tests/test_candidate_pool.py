@@ -1,9 +1,13 @@
 """A diagnosis's candidates fitted on worker processes (an action table's base beside them and every held-out fold a
-task; a command map's base, profiles and hooked effects side by side) give the diagnosis one process gives."""
+task; a command map's base, profiles and hooked effects side by side) give the diagnosis one process gives; the
+workers start so that a stop signal finds every one of them."""
+import multiprocessing
+import signal
+
 import numpy as np
 
 import casm_graph as cg
-from casm_graph.analysis.candidates.pool import parallel, picklable
+from casm_graph.analysis.candidates.pool import STOP, parallel, picklable
 from casm_graph.models.effects import get, spec
 from casm_graph.sim.aibo import SimConfig, simulate, write
 from tests.worlds.independent_world import generate
@@ -61,3 +65,21 @@ def test_what_travels_to_the_workers():
     assert not picklable([(abs, (Local,))])
     assert parallel([(len, ([Local, 1],)), (len, ([],))], workers=2) == [2, 0]
     assert parallel([(abs, (-3,)), (abs, (2,))], workers=2) == [3, 2]
+
+
+def test_workers_start_with_the_stop_signals_held_and_run_with_them_free(monkeypatch):
+    """A SIGTERM while the pool forks waits until the parent knows every worker, so the command line's handler
+    terminates them all (a worker forked but not yet counted outlived it); the workers take the signals at once and
+    the caller's own mask comes back as it was."""
+    held, real = [], multiprocessing.Pool
+
+    def pool(*args, **kw):                    # the real pool, the mask it was started under noted
+        held.append(signal.pthread_sigmask(signal.SIG_BLOCK, []))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(multiprocessing, "Pool", pool)
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    masks = parallel([(signal.pthread_sigmask, (signal.SIG_BLOCK, [])) for _ in range(2)], workers=2)
+    assert len(held) == 1 and set(STOP) <= set(held[0])
+    assert len(masks) == 2 and not any(set(STOP) & set(m) for m in masks)
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before

@@ -8,6 +8,8 @@ import os
 import pickle
 import signal
 
+STOP = (signal.SIGINT, signal.SIGTERM)       # the signals the command line's handler stops on
+
 
 def call(task):
     """Run one (function, arguments) task."""
@@ -21,6 +23,18 @@ def _worker_signals():
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP)
+
+
+def _pool(n: int):
+    """A pool of ``n`` workers started with the stop signals held: one landing while a worker forks waits until the
+    parent knows every worker, so its handler terminates them all (a worker forked but not yet counted outlived a
+    SIGTERM, blocked on the task queue and holding the caller's output pipes open)."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP)
+    try:
+        return multiprocessing.Pool(n, initializer=_worker_signals)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def _call_packed(blob: bytes):
@@ -63,7 +77,7 @@ def parallel(calls: list, workers: int, progress=None, client=None) -> list:
     results = []
     blobs = packed(calls) if workers > 1 and len(calls) > 1 else None
     if blobs is not None:                     # pickled once: the check is the travel
-        pool = multiprocessing.Pool(min(workers, len(calls)), initializer=_worker_signals)
+        pool = _pool(min(workers, len(calls)))
         try:
             for r in pool.imap(_call_packed, blobs):
                 results.append(r)
