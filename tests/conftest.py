@@ -59,12 +59,17 @@ def position_rms(cal, log) -> float:
     return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
-def patch_contrast(entry: dict, log, truth: dict) -> float:
-    """Mean slow-down of a fitted surface_friction field on the world's patch minus off it, along the true path."""
+def slow_on_patch(entry: dict, log, patch: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A fitted surface_friction field's slow-down at every true pose, and whether the pose is on the world's
+    rectangular ``patch`` (xmin, xmax, ymin, ymax)."""
     field = REGISTRY["surface_friction"](log)
     field.restore(entry)
     slow = field.slow(np.array([entry[p] for p in field.params]), log.truth[:, 1:3])
-    p = truth["geometry"]["patch"]
     x, y = log.truth[:, 1], log.truth[:, 2]
-    on = (x >= p["xmin"]) & (x <= p["xmax"]) & (y >= p["ymin"]) & (y <= p["ymax"])
+    return slow, (x >= patch["xmin"]) & (x <= patch["xmax"]) & (y >= patch["ymin"]) & (y <= patch["ymax"])
+
+
+def patch_contrast(entry: dict, log, truth: dict) -> float:
+    """Mean slow-down of a fitted surface_friction field on the world's patch minus off it, along the true path."""
+    slow, on = slow_on_patch(entry, log, truth["geometry"]["patch"])
     return float(slow[on].mean() - slow[~on].mean())

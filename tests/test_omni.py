@@ -21,6 +21,7 @@ from casm_graph.io.log import LogError
 from casm_graph.models.command_model import CommandModel, for_commands
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.model import Model
+from tests.conftest import slow_on_patch
 from tests.worlds import omni_world
 
 
@@ -187,12 +188,8 @@ def test_a_carpet_is_named_in_the_form_a_calibration_fits_best_and_its_turn_shar
     assert min(c.orders.values()) < c.orders[0] and c.confirmed[0] == max(c.confirmed.values()), c
     fixed = cg.calibrate(log, effects=[diag.to_add()], seed=1)
     e = fixed.model.effects["surface_friction"]
-    field = REGISTRY["surface_friction"](log)
-    field.restore(e)
-    slow = field.slow(np.array([e[p] for p in field.params]), log.truth[:, 1:3])
-    p, s = world["effect"]["patch"], world["effect"]["strength"]
-    x, y = log.truth[:, 1], log.truth[:, 2]
-    on = (x >= p["xmin"]) & (x <= p["xmax"]) & (y >= p["ymin"]) & (y <= p["ymax"])
+    slow, on = slow_on_patch(e, log, world["effect"]["patch"])
+    s = world["effect"]["strength"]
     for share, true in ((1.0, 1 - s), (e["turn_share"], 1 - s / 2)):       # drive, turn: on the carpet / off it
         speed = 1.0 - share * slow
         assert speed[on].mean() / speed[~on].mean() == pytest.approx(true, abs=0.05), (e, share)
