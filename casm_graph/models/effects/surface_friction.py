@@ -238,7 +238,7 @@ def patch_start(poses: np.ndarray, commanded: np.ndarray, extent) -> tuple | Non
     _, group = np.unique(np.round(commanded[ok], 9), axis=0, return_inverse=True)
     if group.max() >= GROUPS:                                         # continuous commands: bins of speed
         group = np.searchsorted(np.quantile(x, np.linspace(0, 1, SPEED_BINS + 1)[1:-1]), x)
-    group = group.ravel()
+    group = np.unique(group.ravel(), return_inverse=True)[1].ravel()   # tied quantiles leave no bin empty
     G = int(group.max()) + 1
     xa = np.bincount(group, x * x, G)
     y = y - x * (np.bincount(group, x * y, G) / xa)[group]            # each group's own mean shortfall removed
