@@ -128,14 +128,21 @@ def map_scores(model, ct, world, prefix=""):
 
 
 def floors(ct):
-    """The best the documented map class can do (LS: speed deg 2 in v; turn deg 1 in w plus a term in v)."""
+    """The best the documented map class can do (LS: speed deg 2 in v; turn deg 1 in w plus a term in v), and the
+    truth's turn term in w * v beyond that map (the form a proposal can write) with its share of the rest."""
     v, w = ct["v"], ct["w"]
     rv, rw = np.ptp(ct["v_true"]), np.ptp(ct["w_true"])
     Av = np.column_stack([v ** 0, v, v ** 2]); Aw = np.column_stack([w ** 0, w, v])
     bv = np.linalg.lstsq(Av, ct["v_true"], rcond=None)[0]; bw = np.linalg.lstsq(Aw, ct["w_true"], rcond=None)[0]
+    ew = ct["w_true"] - Aw @ bw
+    Ax = np.column_stack([Aw, w * v])
+    bx = np.linalg.lstsq(Ax, ct["w_true"], rcond=None)[0]
     return {"speed_floor_pct": float(100 * np.sqrt(np.mean((Av @ bv - ct["v_true"]) ** 2)) / rv),
-            "turn_floor_pct": float(100 * np.sqrt(np.mean((Aw @ bw - ct["w_true"]) ** 2)) / rw),
-            "true_v_range": float(rv), "true_w_range": float(rw)}
+            "turn_floor_pct": float(100 * np.sqrt(np.mean(ew ** 2)) / rw),
+            "true_v_range": float(rv), "true_w_range": float(rw),
+            # the truth's turn beyond the map, as a term w * v (the form the proposal library can write)
+            "true_turn_w_speed": float(bx[-1]),
+            "true_turn_w_speed_share": float(1.0 - np.var(ct["w_true"] - Ax @ bx) / np.var(ew))}
 
 
 def score(log, runp, world, prefix=""):
