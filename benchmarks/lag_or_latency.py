@@ -1,6 +1,8 @@
-"""Actuator lag or camera latency? Each world of ``tests/worlds/independent_world.py`` calibrated three times
+"""Actuator lag or camera latency? Each world of ``tests/worlds/independent_world.py`` (or ``omni_world.py``,
+``--kind omni``) calibrated three times
 (no effect, ``--effect actuator_lag``, ``--effect camera_latency``): the log-likelihood each calibration reaches
-and its trajectory's position RMS against the world's truth.
+and its trajectory's position RMS against the world's truth; then the base diagnosed (the verdict, the look-alike
+group, the diagnosis's seconds).
 
 The diagnosis names one of the two look-alikes from fits on its coarse graph; this measures whether the
 calibration's own graph separates them, and which one brings the trajectory to the truth.
@@ -22,6 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
+from tests.worlds import omni_world                        # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 TRIED = ("actuator_lag", "camera_latency")
@@ -35,7 +38,11 @@ def position_rms(cal, log) -> float:
 def trial(kind: str, effect: str, seed: int, minutes: float, workdir: Path) -> dict:
     """One world: the base and each of the two effects calibrated; log-likelihood, parameters, position RMS."""
     t0 = time.perf_counter()
-    truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect)
+    if kind == "omni":
+        truth = omni_world.generate(workdir / "log", minutes=minutes, seed=seed, effect=effect)
+        truth["strength"] = truth["effect"]["strength"]
+    else:
+        truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect)
     log = cg.load_log(workdir / "log")
     row = {"kind": kind, "effect": effect, "seed": seed, "minutes": minutes, "strength": truth.get("strength")}
     with warnings.catch_warnings():
@@ -46,6 +53,12 @@ def trial(kind: str, effect: str, seed: int, minutes: float, workdir: Path) -> d
             row[added or "base"] = {"log_likelihood": m["fit"].get("log_likelihood"),
                                     "parameters": m.get("effects", {}).get(added, {}) if added else {},
                                     "position_rms": position_rms(cal, log)}
+            if added is None:
+                base = cal
+        t1 = time.perf_counter()
+        d = cg.diagnose(log, base)
+        row["diagnosed"] = {"verdict": d.verdict, "lookalikes": [g["effects"] for g in d.lookalikes],
+                            "seconds": round(time.perf_counter() - t1, 1)}
     row["seconds"] = round(time.perf_counter() - t0, 1)
     return row
 
@@ -57,12 +70,13 @@ def line(r: dict) -> str:
             f"{r['base']['log_likelihood']:,.1f}, lag {lag['log_likelihood']:,.1f}, latency "
             f"{lat['log_likelihood']:,.1f} ({ahead} ahead by {abs(lat['log_likelihood'] - lag['log_likelihood']):,.1f}"
             f"); position RMS m base {r['base']['position_rms']:.4f}, lag {lag['position_rms']:.4f}, latency "
-            f"{lat['position_rms']:.4f}")
+            f"{lat['position_rms']:.4f}; diagnosis {r['diagnosed']['verdict']} {r['diagnosed']['lookalikes']} "
+            f"({r['diagnosed']['seconds']} s)")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--kind", default="continuous", choices=("continuous", "table"))
+    ap.add_argument("--kind", default="continuous", choices=("continuous", "table", "omni"))
     ap.add_argument("--effects", nargs="+", default=["camera_latency", "actuator_lag"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--minutes", type=float, default=6.0)
