@@ -24,15 +24,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
+from casm_graph.analysis.groundtruth import position_rms   # noqa: E402
 from tests.worlds import omni_world                        # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
 TRIED = ("actuator_lag", "camera_latency")
-
-
-def position_rms(cal, log) -> float:
-    tr = cal.trajectory
-    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
 def trial(kind: str, effect: str, seed: int, minutes: float, workdir: Path) -> dict:
@@ -52,7 +48,8 @@ def trial(kind: str, effect: str, seed: int, minutes: float, workdir: Path) -> d
             m = cal.model_json
             row[added or "base"] = {"log_likelihood": m["fit"].get("log_likelihood"),
                                     "parameters": m.get("effects", {}).get(added, {}) if added else {},
-                                    "position_rms": position_rms(cal, log)}
+                                    "position_rms": position_rms(np.column_stack([cal.trajectory["x"],
+                                                                                  cal.trajectory["y"]]), log.truth)}
             if added is None:
                 base = cal
         t1 = time.perf_counter()
