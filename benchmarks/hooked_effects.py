@@ -15,19 +15,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import casm_graph as cg  # noqa: E402
+from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
 from tests.worlds.independent_world import generate  # noqa: E402
 
 STRENGTH = {"battery_fade": 0.04}        # else the world's own draw from its moderate range
-
-
-def position_rms(log, cal) -> float:
-    tr = cal.trajectory
-    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
 def one(effect: str, seed: int, minutes: float, step_heading: str = "auto") -> dict:
@@ -47,7 +41,7 @@ def one(effect: str, seed: int, minutes: float, step_heading: str = "auto") -> d
                "verdict": diag.verdict, "lookalikes": [g["effects"] for g in diag.lookalikes],
                "best": diag.candidates[0].effect if diag.candidates else None,
                "best_delta_bic": diag.candidates[0].delta_bic if diag.candidates else None,
-               "position_rms": [position_rms(log, cal)], "diagnose_over_calibrate": td / tc}
+               "position_rms": [trajectory_rms(cal.trajectory, log.truth)], "diagnose_over_calibrate": td / tc}
         add = (diag.proposal_effect() if diag.proposal else
                diag.to_add() if diag.verdict != "none" and not diag.verdict.startswith("unexplained") else None)
         if add is not None:
@@ -57,7 +51,7 @@ def one(effect: str, seed: int, minutes: float, step_heading: str = "auto") -> d
             row.update(added=name, fitted=cal2.model.effects.get(name),
                        fitted_std=cal2.model.fit.get("effects_std", {}).get(name),
                        verdict_after=after.verdict, lookalikes_after=[g["effects"] for g in after.lookalikes])
-            row["position_rms"].append(position_rms(log, cal2))
+            row["position_rms"].append(trajectory_rms(cal2.trajectory, log.truth))
         return row
 
 

@@ -29,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
+from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
 from casm_graph.fit.continuous import check_effects       # noqa: E402
 from casm_graph.io.log import LogError                    # noqa: E402
 from casm_graph.models.effects import get as get_effect   # noqa: E402
@@ -38,11 +39,6 @@ from tests.worlds.independent_world import generate        # noqa: E402
 CATALOG = {e["name"] for e in cg.catalog()}
 UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x", "time_speed": "time",
                "speed_turn": "speed"}   # the covariate each depends on
-
-
-def position_rms(cal, log) -> float:
-    tr = cal.trajectory
-    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
 def addable(effect: str | None, log) -> bool:
@@ -81,11 +77,11 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
                "lookalikes": [g["effects"] for g in d1.lookalikes],
                "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
                                "order": c.order} for c in d1.candidates[:4]],
-               "error_before": position_rms(base, log), "added": add}
+               "error_before": trajectory_rms(base.trajectory, log.truth), "added": add}
         if add is not None:
             fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis, step_heading=step_heading)
             d2 = cg.diagnose(log, fixed, before=d1, options=options)
-            row.update(verdict_after=d2.verdict, error_after=position_rms(fixed, log),
+            row.update(verdict_after=d2.verdict, error_after=trajectory_rms(fixed.trajectory, log.truth),
                        predictive=d2.before_after.get("predictive") if d2.before_after else None)
     row["seconds"] = round(time.perf_counter() - t0, 1)
     return row

@@ -19,12 +19,10 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
-from casm_graph.analysis.groundtruth import position_rms   # noqa: E402
+from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
 from tests.worlds import omni_world                        # noqa: E402
 from tests.worlds.independent_world import generate        # noqa: E402
 
@@ -48,8 +46,7 @@ def trial(kind: str, effect: str, seed: int, minutes: float, workdir: Path) -> d
             m = cal.model_json
             row[added or "base"] = {"log_likelihood": m["fit"].get("log_likelihood"),
                                     "parameters": m.get("effects", {}).get(added, {}) if added else {},
-                                    "position_rms": position_rms(np.column_stack([cal.trajectory["x"],
-                                                                                  cal.trajectory["y"]]), log.truth)}
+                                    "position_rms": trajectory_rms(cal.trajectory, log.truth)}
             if added is None:
                 base = cal
         t1 = time.perf_counter()

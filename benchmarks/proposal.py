@@ -17,16 +17,12 @@ from pathlib import Path
 import numpy as np
 
 import casm_graph as cg
+from casm_graph.analysis.groundtruth import trajectory_rms
 from casm_graph.analysis.proposal import strongest_t
 from casm_graph.models.effects.proposal import equation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "worlds"))
 import independent_world as W  # noqa: E402
-
-
-def position_rms(cal, log) -> float:
-    tr = cal.trajectory
-    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
 
 
 def heading_rms(cal, log) -> float:
@@ -48,12 +44,12 @@ def one(effect: str, seed: int, minutes: float, kind: str = "table", cross_terms
            "turn_per_speed": ct.get("w_per_v") if ct.get("kept") else None,
            "verdict": diag.verdict, "proposal": diag.proposal.get("equation", []),
            "strongest_t": strongest_t(diag.proposal),
-           "position_rms": [position_rms(cal, log)], "heading_rms": [heading_rms(cal, log)]}
+           "position_rms": [trajectory_rms(cal.trajectory, log.truth)], "heading_rms": [heading_rms(cal, log)]}
     if diag.proposal:
         cal2 = cg.calibrate(log, effects=[diag.proposal_effect()], cross_terms=cross_terms, step_heading=step_heading)
         after = cg.diagnose(log, cal2, before=diag)
         row.update(fitted=equation(cal2.model.effects["proposal"]), verdict_after=after.verdict)
-        row["position_rms"].append(position_rms(cal2, log))
+        row["position_rms"].append(trajectory_rms(cal2.trajectory, log.truth))
         row["heading_rms"].append(heading_rms(cal2, log))
     return row
 

@@ -7,6 +7,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
 from casm_graph.models.effects import REGISTRY  # noqa: E402
 from casm_graph.sim.aibo import SimConfig, simulate, write  # noqa: E402
 
@@ -55,8 +56,7 @@ def short_bundle(tmp_path_factory):
 
 def position_rms(cal, log) -> float:
     """Position RMS (m) of a calibration's trajectory against the log's truth."""
-    tr = cal.trajectory
-    return float(np.sqrt(np.mean((tr["x"] - log.truth[:, 1]) ** 2 + (tr["y"] - log.truth[:, 2]) ** 2)))
+    return trajectory_rms(cal.trajectory, log.truth)
 
 
 def slow_on_patch(entry: dict, log, patch: dict) -> tuple[np.ndarray, np.ndarray]:

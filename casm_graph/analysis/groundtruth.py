@@ -60,6 +60,11 @@ def position_rms(poses: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((poses[:, :2] - truth[:, 1:3]) ** 2, axis=1))))
 
 
+def trajectory_rms(trajectory: dict, truth: np.ndarray) -> float:
+    """:func:`position_rms` of a calibration's trajectory (its ``x``, ``y`` columns, one row per pose)."""
+    return position_rms(np.column_stack([trajectory["x"], trajectory["y"]]), truth)
+
+
 def baseline_trajectories(log: Log, fit: Fit, progress: Progress | None = None) -> dict:
     """Poses of the identity-model graph (from the fit's own start) and of raw dead reckoning."""
     progress = progress or Progress()
