@@ -12,11 +12,13 @@ import pytest
 
 import casm_graph as cg
 from casm_graph.analysis.diagnosis import Candidate, discover
-from casm_graph.analysis.proposal import covariate, distinct
+from casm_graph.analysis.proposal import covariate, distinct, propose
 from casm_graph.cli import main
+from casm_graph.fit.residuals import Channel
 from casm_graph.io.log import LogError
 from casm_graph.models.effects import of_model
-from casm_graph.models.effects.proposal import equation, features, from_diagnosis, library, parse, proposal_effect
+from casm_graph.models.effects.proposal import (SPEED_FLOOR, equation, features, from_diagnosis, library, parse,
+                                                proposal_effect)
 
 from .conftest import FULL
 from .worlds.independent_world import generate
@@ -33,6 +35,7 @@ def test_a_proposal_is_named_by_its_strongest_terms_covariate():
     assert covariate(prop({"forward: v_forward*sin(2pi t/120s)": 7.0, "lateral: x": 5.5})) == "time"
     assert covariate(prop({"turn: w*y": 8.0})) == "y"
     assert covariate(prop({"lateral: |w|": 5.1})) == "turn_rate"
+    assert covariate(prop({"turn: w/speed": 6.2, "turn: w*cos(heading)": 5.5})) == "speed"
 
 
 def test_a_proposal_is_its_equation_and_survives_model_json_and_pickle():
@@ -50,6 +53,50 @@ def test_a_proposal_is_its_equation_and_survives_model_json_and_pickle():
     assert np.allclose(out[:, 2], v[:, 2] + 0.2 * np.hypot(v[:, 0], v[:, 1]))
     assert equation(TERMS)[0] == "forward velocity (m/s) += - 0.08 v_forward*cos(heading) + 0.12 v_forward*sin(heading)"
     assert features("turn", ["w*x"], {"pose": pose, "t": t}, v)[:, 0] == pytest.approx(v[:, 2] * pose[:, 0])
+
+
+def test_a_turn_rate_over_the_speed_is_a_term_of_the_turn_only():
+    """A car steering for its commanded speed turns at w v_true / v: ``w/speed``, the speed floored where the
+    robot turns in place."""
+    v = np.array([[0.2, 0.0, 0.4], [0.0, 0.01, -0.3], [-0.5, 0.0, 0.1]])
+    ctx = {"pose": np.zeros((3, 3)), "t": np.zeros(3)}
+    got = features("turn", ["w/speed"], ctx, v)[:, 0]
+    assert got == pytest.approx([0.4 / 0.2, -0.3 / SPEED_FLOOR, 0.1 / 0.5])
+    assert "w/speed" in library("turn") and not any("speed" in t and "/" in t for t in library("forward"))
+    assert not any(t.endswith("1/speed") for a in ("forward", "lateral", "turn") for t in library(a))
+    for bad in ("forward: v_forward/speed", "turn: 1/speed", "turn: w*1/speed"):
+        with pytest.raises(LogError):
+            parse([bad])
+    cls = proposal_effect({"turn: w/speed": 0.03})
+    assert np.allclose(cls(None).velocity(np.array([0.03]), v, ctx)[:, 2], v[:, 2] + 0.03 * got)
+    assert equation({"turn: w/speed": 0.03}) == ["turn velocity (rad/s) += 0.03 w/speed"]
+
+
+def motion_channels(turn_extra, seed: int = 0, steps: int = 3600, dt: float = 0.1) -> dict:
+    """Motion residual channels of a car-like drive (1-2 m/s forward, a wandering turn rate) whose turn residual is
+    ``turn_extra(v, w)`` plus white noise; the other axes noise only."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps) * dt
+    v = 1.2 + 0.5 * np.sin(2 * np.pi * t / 37) + 0.2 * rng.standard_normal(steps).cumsum() / np.sqrt(steps)
+    v = np.clip(v, 0.4, 2.0)
+    w = np.clip(np.convolve(rng.normal(0, 0.3, steps), np.ones(20) / np.sqrt(20), "same"), -1, 1)
+    heading = np.cumsum(w * dt)
+    x, y = np.cumsum(v * np.cos(heading) * dt), np.cumsum(v * np.sin(heading) * dt)
+    cov = {"x": x, "y": y, "heading": heading, "time": t}
+    vel = {"forward": v, "lateral": np.zeros(steps), "turn": w}
+    extra = {"forward": 0.0, "lateral": 0.0, "turn": turn_extra(v, w)}
+    span = np.full(steps, dt)
+    return {a: Channel(a, np.zeros(steps), (extra[a] + rng.normal(0, 0.05, steps)) * span, t, cov,
+                       command=vel[a], span=span) for a in ("forward", "lateral", "turn")}
+
+
+def test_the_regression_tells_a_turn_over_the_speed_from_a_turn_times_the_speed():
+    """Synthetic residuals: a turn term 0.03 w/v is proposed as ``w/speed`` (within 25 %), 0.03 w v as ``w*speed``."""
+    over = propose(motion_channels(lambda v, w: 0.03 * w / v))["terms"]
+    assert set(over) == {"turn: w/speed"} and over["turn: w/speed"] == pytest.approx(0.03, rel=0.25)
+    times = propose(motion_channels(lambda v, w: 0.03 * w * v, seed=1))["terms"]
+    assert set(times) == {"turn: w*speed"} and times["turn: w*speed"] == pytest.approx(0.03, rel=0.25)
+    assert propose(motion_channels(lambda v, w: 0.0 * w, seed=2)) == {}
 
 
 def test_a_library_term_repeating_another_is_left_out():

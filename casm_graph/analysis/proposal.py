@@ -3,7 +3,7 @@
 When no catalog effect explains the structure, each motion axis's residual velocity (measured minus
 modelled, over each residual's span) is regressed on the library of
 :func:`casm_graph.models.effects.proposal.library` (heading, position, time, speed, turn rate, alone
-and times the axis's own velocity, and the oscillation in time whose period fits best). Residuals are averaged over blocks of about a second first: the
+and times the axis's own velocity, the turn rate over the speed, and the oscillation in time whose period fits best). Residuals are averaged over blocks of about a second first: the
 smoothed trajectory's per-step residuals are correlated over a few steps.
 scikit-learn's LARS lasso with BIC picks the terms; a least-squares refit on them gives coefficients
 and t-values (a Newey-West covariance: block means of a smoothed trajectory still drift slowly
@@ -23,7 +23,8 @@ from sklearn.linear_model import LassoLarsIC
 from casm_graph.models.effects.proposal import AXES, OWN, PERIODIC, equation, features, library, periodic_terms, with_own
 
 COVARIATE = {"cos(heading)": "heading", "sin(heading)": "heading", "x": "x", "y": "y", "t": "time",
-             "speed": "speed", "v_forward": "speed", "v_lateral": "speed", "w": "turn_rate", "|w|": "turn_rate"}
+             "speed": "speed", "v_forward": "speed", "v_lateral": "speed", "w": "turn_rate", "|w|": "turn_rate",
+             "/speed": "speed"}
 
 
 @dataclass(frozen=True)
@@ -182,8 +183,8 @@ def term_covariates(proposal: dict) -> list[tuple[str, str]]:
     for axis, term in sorted(((a, k) for a, f in proposal["axes"].items() for k in f["t_values"]),
                              key=lambda ak: -abs(proposal["axes"][ak[0]]["t_values"][ak[1]])):
         base = term.split(": ", 1)[1]
-        if base.startswith(OWN[axis] + "*"):
-            base = base[len(OWN[axis]) + 1:]
+        if base.startswith(OWN[axis]):
+            base = base[len(OWN[axis]):].removeprefix("*")
         out.append((axis, "time" if PERIODIC.match(base) else COVARIATE.get(base, base)))
     return out
 

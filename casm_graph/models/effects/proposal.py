@@ -5,7 +5,8 @@ motion residuals' structure: ``forward velocity += 0.03 v_forward*cos(heading) -
 parameter is a term's coefficient and is named ``"<axis>: <term>"``, so model.json alone says what
 the effect computes and :func:`proposal_effect` rebuilds it from a model.json entry. Terms are the library's features of the
 step (heading, position, time, speed, the velocities, a slow oscillation in time), alone or times the axis's
-own velocity.
+own velocity, and the turn rate over the speed (``w/speed``: a car's firmware that steers for the
+commanded speed turns at w v_true / v, so an offset in the speed map leaves a term in w/v).
 """
 from __future__ import annotations
 
@@ -26,6 +27,9 @@ _CLASSES: dict[str, type[Effect]] = {}     # built proposals by class name, so p
 
 
 BASE_TERMS = ("cos(heading)", "sin(heading)", "x", "y", "t", "speed", "v_forward", "v_lateral", "w", "|w|")
+OWN_ONLY = ("1/speed",)    # features a term uses only times the axis's own velocity, spelled "<own>/speed" ...
+RATIO_AXES = ("turn",)     # ... on these axes (a forward speed over the speed is its sign: a creep, not a ratio)
+SPEED_FLOOR = 0.05         # m/s: 1/speed is taken at no less than this (a robot turning in place has no speed)
 PERIODIC = re.compile(r"^(sin|cos)\(2pi t/([0-9]+(?:\.[0-9]+)?)s\)$")   # a slow oscillation in time, period in s
 
 
@@ -39,7 +43,8 @@ def _base(name: str, pose: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarr
     fixed = {"cos(heading)": lambda: np.cos(pose[:, 2]), "sin(heading)": lambda: np.sin(pose[:, 2]),
              "x": lambda: pose[:, 0], "y": lambda: pose[:, 1], "t": lambda: t / 60.0,
              "speed": lambda: np.hypot(v[:, 0], v[:, 1]), "v_forward": lambda: v[:, 0], "v_lateral": lambda: v[:, 1],
-             "w": lambda: v[:, 2], "|w|": lambda: np.abs(v[:, 2])}
+             "w": lambda: v[:, 2], "|w|": lambda: np.abs(v[:, 2]),
+             "1/speed": lambda: 1.0 / np.maximum(np.hypot(v[:, 0], v[:, 1]), SPEED_FLOOR)}
     if name in fixed:
         return fixed[name]()
     m = PERIODIC.match(name)
@@ -50,20 +55,25 @@ def _base(name: str, pose: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarr
 
 def with_own(axis: str, base) -> tuple[str, ...]:
     """The terms of ``axis`` from base features: each alone (not the axis's own velocity: that is the model's
-    gain) and times the axis's own velocity (not times a velocity)."""
+    gain; not :data:`OWN_ONLY`) and times the axis's own velocity (not times a velocity; ``<own>/speed`` for
+    ``1/speed`` on :data:`RATIO_AXES`)."""
     own = OWN[axis]
-    return tuple(b for b in base if b != own) + tuple(f"{own}*{b}" for b in base if b not in OWN.values())
+    return (tuple(b for b in base if b != own and b not in OWN_ONLY)
+            + tuple(f"{own}*{b}" for b in base if b not in OWN.values() and b not in OWN_ONLY)
+            + tuple(f"{own}/speed" for b in base if b in OWN_ONLY and axis in RATIO_AXES))
 
 
 def library(axis: str, periods=()) -> tuple[str, ...]:
     """The terms a proposal on ``axis`` may use (:func:`with_own` of the base features); ``periods`` (s) add
     oscillations in time."""
-    return with_own(axis, BASE_TERMS + tuple(term for p in periods for term in periodic_terms(p)))
+    return with_own(axis, BASE_TERMS + OWN_ONLY + tuple(term for p in periods for term in periodic_terms(p)))
 
 
 def _split(axis: str, term: str) -> tuple[bool, str]:
     """(times the own velocity?, base feature) of a term of ``axis``."""
     own = OWN[axis]
+    if term == f"{own}/speed" and axis in RATIO_AXES:
+        return True, "1/speed"
     return (True, term[len(own) + 1:]) if term.startswith(own + "*") else (False, term)
 
 
@@ -88,8 +98,9 @@ def parse(names) -> list[tuple[str, str]]:
         axis, sep, term = str(name).partition(": ")
         ok = sep and axis in AXES
         if ok:
-            times_own, b = _split(axis, term)
-            ok = (b in BASE_TERMS or PERIODIC.match(b)) and b != OWN[axis]
+            _, b = _split(axis, term)
+            ok = ((b in BASE_TERMS or PERIODIC.match(b) or (term == f"{OWN[axis]}/speed" and b in OWN_ONLY))
+                  and b != OWN[axis])
         if not ok:
             raise LogError(f"proposal parameter {name!r}: expected '<axis>: <term>' with axis one of "
                            f"{', '.join(AXES)} and a library term")
