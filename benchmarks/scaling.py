@@ -3,8 +3,8 @@
 For every log length (``--minutes``, default 15 30 60 120) and log kind (``--kinds``: ``table`` is the
 action-table Aibo log, ``floor`` the continuous v,w commands of ``--protocol floor``) the project's
 simulator writes a log (``--seed``, default 5), then each command (``--commands``: ``calibrate``, and
-optionally ``diagnose`` and ``uncertainty``, which start from the calibrate run) runs in its own
-process of ``casm-graph``. Printed as a markdown table: wall time, peak memory (the child's maximum
+optionally ``diagnose`` and ``uncertainty``, which start from the calibrate run, so it always runs first) runs in
+its own process of ``casm-graph``. Printed as a markdown table: wall time, peak memory (the child's maximum
 resident set size, from ``os.wait4``), iterations (``fit.iterations`` of model.json, calibrate only),
 the share of each progress stage (read from the tqdm bars the CLI prints on stderr, to the second),
 and per kind and command the fitted exponent of cost against length (least-squares slope of log
@@ -147,6 +147,7 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=None, help="directory for the logs and runs (default: a temporary one)")
     ap.add_argument("--json", default=None, help="also write the measurements here")
     args = ap.parse_args(argv)
+    commands = ["calibrate"] + [c for c in args.commands if c != "calibrate"]   # the others start from its run
     versions = [tuple(v.split("=", 1)) if "=" in v else (v, v) for v in args.versions]
 
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="casm_scaling_"))
@@ -163,7 +164,7 @@ def main(argv=None) -> int:
                 if r.returncode:
                     print(r.stderr, file=sys.stderr)
                     return 1
-            for command in args.commands:
+            for command in commands:
                 for label, path in versions:
                     run_dir = work / "runs" / label / tag
                     out = run_dir / command
@@ -232,7 +233,7 @@ def main(argv=None) -> int:
     print("|---|---|---|---:|---:|---:|---:|")
     for label, _ in versions:
         for kind in args.kinds:
-            for command in args.commands:
+            for command in commands:
                 sel = [r for r in rows if r["version"] == label and r["kind"] == kind and r["command"] == command
                        and r["status"] == 0]
                 if len(sel) >= 2:
