@@ -20,11 +20,12 @@ import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.linear_model import LassoLarsIC
 
-from casm_graph.models.effects.proposal import AXES, OWN, PERIODIC, equation, features, library, periodic_terms, with_own
+from casm_graph.models.effects.proposal import (AXES, PERIODIC, equation, features, library, periodic_terms,
+                                                split_term, with_own)
 
 COVARIATE = {"cos(heading)": "heading", "sin(heading)": "heading", "x": "x", "y": "y", "t": "time",
              "speed": "speed", "v_forward": "speed", "v_lateral": "speed", "w": "turn_rate", "|w|": "turn_rate",
-             "/speed": "speed"}
+             "1/speed": "speed"}
 
 
 @dataclass(frozen=True)
@@ -182,9 +183,7 @@ def term_covariates(proposal: dict) -> list[tuple[str, str]]:
     out = []
     for axis, term in sorted(((a, k) for a, f in proposal["axes"].items() for k in f["t_values"]),
                              key=lambda ak: -abs(proposal["axes"][ak[0]]["t_values"][ak[1]])):
-        base = term.split(": ", 1)[1]
-        if base.startswith(OWN[axis]):
-            base = base[len(OWN[axis]):].removeprefix("*")
+        base = split_term(axis, term.split(": ", 1)[1])[1]
         out.append((axis, "time" if PERIODIC.match(base) else COVARIATE.get(base, base)))
     return out
 

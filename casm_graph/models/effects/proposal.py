@@ -27,8 +27,8 @@ _CLASSES: dict[str, type[Effect]] = {}     # built proposals by class name, so p
 
 
 BASE_TERMS = ("cos(heading)", "sin(heading)", "x", "y", "t", "speed", "v_forward", "v_lateral", "w", "|w|")
-OWN_ONLY = ("1/speed",)    # features a term uses only times the axis's own velocity, spelled "<own>/speed" ...
-RATIO_AXES = ("turn",)     # ... on these axes (a forward speed over the speed is its sign: a creep, not a ratio)
+OVER_SPEED = {"turn": "w/speed"}   # the own velocity over the speed, a term of these axes only (a forward speed
+#                                    over the speed is its sign: a creep, not a ratio)
 SPEED_FLOOR = 0.05         # m/s: 1/speed is taken at no less than this (a robot turning in place has no speed)
 PERIODIC = re.compile(r"^(sin|cos)\(2pi t/([0-9]+(?:\.[0-9]+)?)s\)$")   # a slow oscillation in time, period in s
 
@@ -55,24 +55,22 @@ def _base(name: str, pose: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarr
 
 def with_own(axis: str, base) -> tuple[str, ...]:
     """The terms of ``axis`` from base features: each alone (not the axis's own velocity: that is the model's
-    gain; not :data:`OWN_ONLY`) and times the axis's own velocity (not times a velocity; ``<own>/speed`` for
-    ``1/speed`` on :data:`RATIO_AXES`)."""
+    gain) and times the axis's own velocity (not times a velocity)."""
     own = OWN[axis]
-    return (tuple(b for b in base if b != own and b not in OWN_ONLY)
-            + tuple(f"{own}*{b}" for b in base if b not in OWN.values() and b not in OWN_ONLY)
-            + tuple(f"{own}/speed" for b in base if b in OWN_ONLY and axis in RATIO_AXES))
+    return tuple(b for b in base if b != own) + tuple(f"{own}*{b}" for b in base if b not in OWN.values())
 
 
 def library(axis: str, periods=()) -> tuple[str, ...]:
-    """The terms a proposal on ``axis`` may use (:func:`with_own` of the base features); ``periods`` (s) add
-    oscillations in time."""
-    return with_own(axis, BASE_TERMS + OWN_ONLY + tuple(term for p in periods for term in periodic_terms(p)))
+    """The terms a proposal on ``axis`` may use (:func:`with_own` of the base features, and :data:`OVER_SPEED`'s);
+    ``periods`` (s) add oscillations in time."""
+    return (with_own(axis, BASE_TERMS + tuple(term for p in periods for term in periodic_terms(p)))
+            + ((OVER_SPEED[axis],) if axis in OVER_SPEED else ()))
 
 
-def _split(axis: str, term: str) -> tuple[bool, str]:
+def split_term(axis: str, term: str) -> tuple[bool, str]:
     """(times the own velocity?, base feature) of a term of ``axis``."""
     own = OWN[axis]
-    if term == f"{own}/speed" and axis in RATIO_AXES:
+    if term == OVER_SPEED.get(axis):
         return True, "1/speed"
     return (True, term[len(own) + 1:]) if term.startswith(own + "*") else (False, term)
 
@@ -82,7 +80,7 @@ def features(axis: str, terms, ctx: dict, v: np.ndarray) -> np.ndarray:
     u = v[:, AXES.index(axis)]
     cols = []
     for term in terms:
-        times_own, b = _split(axis, term)
+        times_own, b = split_term(axis, term)
         col = _base(b, ctx["pose"], ctx["t"], v)
         if col is None:
             raise LogError(f"proposal term {term!r} on {axis}: not in the library ({', '.join(library(axis))}, "
@@ -98,9 +96,8 @@ def parse(names) -> list[tuple[str, str]]:
         axis, sep, term = str(name).partition(": ")
         ok = sep and axis in AXES
         if ok:
-            _, b = _split(axis, term)
-            ok = ((b in BASE_TERMS or PERIODIC.match(b) or (term == f"{OWN[axis]}/speed" and b in OWN_ONLY))
-                  and b != OWN[axis])
+            _, b = split_term(axis, term)
+            ok = (b in BASE_TERMS or PERIODIC.match(b) or term == OVER_SPEED.get(axis)) and b != OWN[axis]
         if not ok:
             raise LogError(f"proposal parameter {name!r}: expected '<axis>: <term>' with axis one of "
                            f"{', '.join(AXES)} and a library term")
