@@ -33,8 +33,7 @@ from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
 from casm_graph.fit.continuous import check_effects       # noqa: E402
 from casm_graph.io.log import LogError                    # noqa: E402
 from casm_graph.models.effects import get as get_effect   # noqa: E402
-from tests.worlds import omni_world                        # noqa: E402
-from tests.worlds.independent_world import generate        # noqa: E402
+from tests.worlds import generate_world                    # noqa: E402
 
 CATALOG = {e["name"] for e in cg.catalog()}
 UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x", "time_speed": "time",
@@ -58,11 +57,8 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
     """One world (sightings no closer than ``min_range``): calibrate (the sensor curve in ``sensor_basis``),
     diagnose (as ``options`` say), add the named (or hidden) effect, diagnose again."""
     t0 = time.perf_counter()
-    if kind == "omni":
-        truth = omni_world.generate(workdir / "log", minutes=minutes, seed=seed, effect=effect)
-        truth["strength"] = truth["effect"]["strength"]
-    else:
-        truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect, min_range=min_range)
+    truth = generate_world(kind, workdir / "log", minutes, seed, effect,
+                           **({} if kind == "omni" else {"min_range": min_range}))
     log = cg.load_log(workdir / "log")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -23,8 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import casm_graph as cg                                    # noqa: E402
 from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
-from tests.worlds import omni_world                        # noqa: E402
-from tests.worlds.independent_world import generate        # noqa: E402
+from tests.worlds import generate_world                    # noqa: E402
 
 TRIED = ("actuator_lag", "camera_latency")
 
@@ -32,11 +31,7 @@ TRIED = ("actuator_lag", "camera_latency")
 def trial(kind: str, effect: str, seed: int, minutes: float, workdir: Path) -> dict:
     """One world: the base and each of the two effects calibrated; log-likelihood, parameters, position RMS."""
     t0 = time.perf_counter()
-    if kind == "omni":
-        truth = omni_world.generate(workdir / "log", minutes=minutes, seed=seed, effect=effect)
-        truth["strength"] = truth["effect"]["strength"]
-    else:
-        truth = generate(workdir / "log", kind=kind, minutes=minutes, seed=seed, effect=effect)
+    truth = generate_world(kind, workdir / "log", minutes, seed, effect)
     log = cg.load_log(workdir / "log")
     row = {"kind": kind, "effect": effect, "seed": seed, "minutes": minutes, "strength": truth.get("strength")}
     with warnings.catch_warnings():
