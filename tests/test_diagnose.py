@@ -123,6 +123,31 @@ def test_slip_that_persists_for_seconds_is_not_structure_with_the_long_run_varia
     assert D.structures(report(trend, long_run), long_run) and deflated["p"] == pytest.approx(plain["p"], rel=0.5)
 
 
+def test_a_place_effect_holds_across_visits_and_wandering_slip_does_not():
+    """A robot dwelling in one of eight cells for 4-8 s per visit: a floor that slows it in some cells leaves
+    the same offset on every visit, slip that wanders for seconds a new one each visit. Both pass the step-level
+    test against place; only the floor passes the test against the visits' spread, and only it backs a candidate
+    built for (forward, place) as its own structure (``visit_p``; 0: the test off)."""
+    rng = np.random.default_rng(1)
+    dwell = rng.integers(40, 80, size=120)
+    visit = np.repeat(np.arange(len(dwell)), dwell)
+    cell = rng.integers(8, size=len(dwell))[visit]
+    n, t = len(cell), np.arange(len(cell)) * 0.1
+    floor = 0.25 * rng.standard_normal(8)[cell] + rng.standard_normal(n)
+    slip = 0.6 * rng.standard_normal(len(dwell))[visit] + rng.standard_normal(n)
+    c = D.Candidate("surface_friction", "motion", -500.0, float("nan"), "because", 250.0, heldout_skipped=D.NO_FOLDS)
+    explains = {"surface_friction": (("forward", "place"),)}
+    for r, holds in ((floor, True), (slip, False)):
+        rep = D.channel_report({"forward": Channel("forward", r, r, t, {"place": cell.astype(float)})})
+        test = rep["forward"]["covariates"][0]
+        assert test["p"] < 1e-6 and test["strength"] > 0.01, test
+        assert (test["visits_p"] < 1e-3) if holds else (test["visits_p"] > 0.05), test
+        assert (D.own_structure(c, explains, rep, []) is not None) == holds
+        off = D.DiagnoseOptions(visit_p=0.0)
+        assert D.own_structure(c, explains, D.channel_report(
+            {"forward": Channel("forward", r, r, t, {"place": cell.astype(float)})}, off), [], off) is not None
+
+
 def test_a_controller_answering_the_noise_is_feedback_not_structure():
     """Closed loop: the command corrects the heading error the slip (an OU process) built up, so the turn residual
     (the slip) depends on the commanded turn rate, and more on its later values: feedback, not a model error. Open
@@ -181,6 +206,32 @@ def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_f
     assert v_ == "battery_fade" and "forward residuals depending on time" in words[0] and found == {}
     v_, _, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, -3.0)], explains)
     assert v_ == "unexplained:time" and found            # scored on folds: the folds decided, not the terms
+
+
+def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_visits():
+    """The forward speed falling toward one side of the field (a floor's plane): the sparse regression's term in y
+    names the friction candidate built for (forward, y) when the channel report says the dependence holds across
+    the robot's visits, and not when it says the visits disagree (slip that wanders, as a report would show it)."""
+    rng = np.random.default_rng(2)
+    n, dt = 6000, 0.1
+    t = np.arange(n) * dt
+    v = np.column_stack([0.2 + 0.05 * rng.random(n), np.zeros(n), 0.3 * rng.standard_normal(n)])
+    pose = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-np.pi, np.pi, n)])
+    cov = {"time": t, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2]}
+    raw = {"forward": -0.03 * v[:, 0] * pose[:, 1] * dt, "lateral": np.zeros(n), "turn": np.zeros(n)}
+    chs = {a: Channel(a, (raw[a] + 0.002 * rng.standard_normal(n)) / 0.002, raw[a] + 0.002 * rng.standard_normal(n),
+                      t, cov, command=v[:, k], span=np.full(n, dt)) for k, a in enumerate(("forward", "lateral", "turn"))}
+    explains = {"surface_friction": (("forward", "y"),)}
+    friction = [cand("surface_friction", -600, float("nan"))]
+
+    def named(visits_p):
+        report = {"forward": {"covariates": [{"name": "y", "strength": 0.004, "p": 1e-4, "kind": "mean",
+                                              "visits_p": visits_p, "visits": 60}]}}
+        return D.discover("none", [], chs, D.ProposalOptions(), friction, explains, report=report, visit_p=0.01)[0]
+
+    assert named(1e-4) == "surface_friction"
+    assert named(0.3) == "none"                     # nor unexplained:y, the proposal's term being that dependence
+    assert D.discover("none", [], chs, D.ProposalOptions(), friction, explains)[0] == "surface_friction"   # no report
 
 
 def test_verdict_rule():

@@ -116,6 +116,14 @@ class DiagnoseOptions:
     feedback_lead: float = 1.0         # s: a motion residual that follows a commanded covariate's later values (up to
     #                                    this lead) more than its own is the controller correcting the noise, not
     #                                    structure of the model (0: no such test)
+    visit_p: float = 0.01              # a motion channel's dependence on place (x, y or the floor's cells), as a
+    #                                    candidate's own structure or a sparse-regression term, counts only when the
+    #                                    bins' means hold across the robot's visits: tested against the spread of the
+    #                                    visits' means within each bin at this level (a floor slows the robot on every
+    #                                    pass; noise that wanders for seconds differs from one pass to the next). Omni
+    #                                    world, six minutes: the carpets' best place pair at 1e-13 to 0.003, an
+    #                                    effect-free log's and the weakest fade's (named surface_friction without it)
+    #                                    at 0.08 and 0.012 (0: no such test)
     long_run_seconds: float = 0.0      # s: > 0 deflates a motion channel's test against each covariate by the long-run
     #                                    variance of its residuals' deviations from their groups' means (Bartlett's
     #                                    weights over lags up to this time), where it exceeds the lag-one (AR(1))
@@ -162,6 +170,35 @@ def long_run_inflation(r: np.ndarray, g: np.ndarray, lags: int) -> float:
         return 1.0
     rho = [float(np.sum(e[k:] * e[:-k])) / v for k in range(1, min(lags, len(e) - 1) + 1)]
     return max(1.0, 1.0 + 2.0 * sum((1.0 - (k + 1) / (lags + 1)) * c for k, c in enumerate(rho)))
+
+
+PLACE_COVARIATES = ("x", "y", "place")   # where the robot is: a motion residual's dependence on it repeats per visit
+MIN_VISIT = 5                             # residuals a visit to a bin needs to count (shorter runs cross its edge)
+
+
+def visits_anova(r: np.ndarray, g: np.ndarray) -> tuple[float, int]:
+    """(p, visits) of the groups' means of residuals ``r`` (time order) tested against the spread of the means of
+    their visits (runs of consecutive residuals in one group ``g``, -1: none, of at least ``MIN_VISIT``) within each
+    group: a split-plot ANOVA whose error term is the visit, the unit a place effect repeats over. p is NaN (not
+    tested) when fewer than two groups have visits or no group has two."""
+    keep = g >= 0
+    r, g = r[keep], g[keep]
+    if len(r) == 0:
+        return float("nan"), 0
+    start = np.r_[True, g[1:] != g[:-1]]
+    visit = np.cumsum(start) - 1
+    n, total, label = np.bincount(visit), np.bincount(visit, weights=r), g[start]
+    big = n >= MIN_VISIT
+    n, total, label = n[big], total[big], label[big]
+    groups, inv = np.unique(label, return_inverse=True)
+    k, v = len(groups), len(n)
+    if k < 2 or v <= k:
+        return float("nan"), int(v)
+    gn = np.bincount(inv, weights=n)
+    gm = np.bincount(inv, weights=total) / gn
+    between = float(np.sum(gn * (gm - total.sum() / n.sum()) ** 2)) / (k - 1)
+    within = float(np.sum(n * (total / n - gm[inv]) ** 2)) / (v - k)
+    return float(stats.f.sf(between / max(within, 1e-300), k - 1, v - k)), int(v)
 
 
 def _groups(x: np.ndarray, categorical: bool, options: DiagnoseOptions = DEFAULTS) -> np.ndarray:
@@ -268,9 +305,16 @@ def covariate_tests(ch: Channel, options: DiagnoseOptions = DEFAULTS) -> list[di
         if motion:
             lead, when = feedback_strength(r_t, x[order], t_t, c_infl, options) if name in COMMANDED and (
                 p_mean < options.structure_p or s_mean >= options.structure_omega2) else (0.0, 0.0)
-            out.append({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"} if lead <= s_mean else
-                       {"name": name, "strength": s_mean, "p": p_mean, "kind": "feedback",
-                        "lead": when, "lead_strength": lead})
+            rec = ({"name": name, "strength": s_mean, "p": p_mean, "kind": "mean"} if lead <= s_mean else
+                   {"name": name, "strength": s_mean, "p": p_mean, "kind": "feedback",
+                    "lead": when, "lead_strength": lead})
+            if name in PLACE_COVARIATES and options.visit_p > 0:
+                g_all = np.full(len(r), -1)
+                g_all[ok] = g
+                p_visits, visits = visits_anova(r_t, g_all[order])
+                if np.isfinite(p_visits):
+                    rec["visits_p"], rec["visits"] = p_visits, visits
+            out.append(rec)
             continue
         s_spread, p_spread = anova(dev[ok], g, infl_dev)
         if s_spread > s_mean:
@@ -515,7 +559,8 @@ def own_structure(c, explains: dict, report: dict, structure: list[dict],
     channel ``report``, each tested at ``options.structure_p`` times the tests the report ran over the pairs of ``c``
     it ran: the material ``structure`` is a search over every pair, a candidate's corroboration a test of its few,
     and both then keep one family-wise error. Strong enough to count (``structure_omega2``, and ``structure_share``
-    of the strongest material structure), not the closed loop's ``feedback``; None when none passes, or when ``c``
+    of the strongest material structure), not the closed loop's ``feedback``, and a motion pair against place
+    holding across the robot's visits (``visits_p`` below ``options.visit_p``); None when none passes, or when ``c``
     has held-out folds (they are its second line) or ``options.own_structure`` is off."""
     if not options.own_structure or c.heldout_skipped != NO_FOLDS or not report:
         return None
@@ -526,8 +571,19 @@ def own_structure(c, explains: dict, report: dict, structure: list[dict],
     p = options.structure_p * len(tests) / len(own)
     floor = max(options.structure_omega2, options.structure_share * (structure[0]["strength"] if structure else 0.0))
     found = [{"channel": ch, **t, "p_threshold": p} for ch, t in own
-             if t["p"] < p and t["strength"] >= floor and t["kind"] != "feedback"]
+             if t["p"] < p and t["strength"] >= floor and t["kind"] != "feedback"
+             and holds_across_visits(report, ch, t["name"], options.visit_p)]
     return max(found, key=lambda t: t["strength"]) if found else None
+
+
+def holds_across_visits(report: dict | None, channel: str, covariate: str, visit_p: float) -> bool:
+    """Whether the ``channel`` residuals' dependence on ``covariate`` holds across the robot's visits, as the channel
+    ``report`` tested it (``visits_p`` below ``visit_p``); True for a covariate that is not a place, one not
+    tested so, or ``visit_p`` 0 (the test off)."""
+    if covariate not in PLACE_COVARIATES or visit_p <= 0 or not report:
+        return True
+    t = next((t for t in report.get(channel, {}).get("covariates", []) if t["name"] == covariate), None)
+    return t is None or "visits_p" not in t or t["visits_p"] < visit_p
 
 
 def built_for(strong: list[dict], explains: dict, report: dict | None = None, structure: list[dict] = (),
@@ -591,7 +647,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                 s = own_structure(best, explains, report, structure, o)
                 second = (f"accounts for a residual structure it is built for ({s['channel']} residuals against "
                           f"{s['name']}: {100 * s['strength']:.1f} % of their variance, p = {s['p']:.1e}, below "
-                          f"{s['p_threshold']:.1e} for a test of its own pairs), {held}")
+                          f"{s['p_threshold']:.1e} for a test of its own pairs"
+                          + (f"; it holds across the robot's {s['visits']} visits, p = {s['visits_p']:.1e}"
+                             if "visits_p" in s else "") + f"), {held}")
         words.append(f"The residuals point to {best.effect}: adding it lowers BIC by {-best.delta_bic:.1f} "
                      f"and {second}. {best.explanation}")
         if len(tied) > 1:
@@ -736,7 +794,8 @@ def chosen_candidates(candidates, extra_effects=()) -> set | None:
 def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions, cands=(),
              explains: dict | None = None, support: float = DEFAULTS.bic_support,
              challenge: Callable | None = None, ratio: float = 0.0,
-             margin: float = DEFAULTS.lookalike_bic) -> tuple[str, list[str], dict]:
+             margin: float = DEFAULTS.lookalike_bic, report: dict | None = None,
+             visit_p: float = 0.0) -> tuple[str, list[str], dict]:
     """The verdict, its words and the sparse-regression proposal (:func:`casm_graph.analysis.proposal.propose`,
     searching as ``options`` say). An ``unexplained:<covariate>`` verdict gets the proposal; so does ``none``
     when the regression finds terms that pass its own test, and the verdict becomes ``unexplained:`` the strongest
@@ -749,7 +808,9 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     Terms that pass are a residual structure too: a candidate of ``cands`` with delta BIC at most ``support``
     whose held-out score was not measured (continuous commands) and that ``explains`` (by name) a term's axis and
     covariate is named instead, the lowest delta BIC first (a weak battery fade: no bin of time stood out, the
-    regression's slow trend in time did)."""
+    regression's slow trend in time did). A term in a place covariate is structure only when the channel
+    ``report``'s test of it holds across the robot's visits (:func:`holds_across_visits` at ``visit_p``), for a
+    candidate and for the ``unexplained:`` verdict alike (whose strongest term it would be)."""
     if verdict_name.startswith("unexplained:"):
         return verdict_name, words, propose(chs, options)
     if verdict_name != "none":
@@ -758,16 +819,17 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     if not found:
         return verdict_name, words, {}
     terms = term_covariates(found)
+    backing = [t for t in terms if holds_across_visits(report, t[0], t[1], visit_p)]
     built = [c for c in sorted(cands, key=lambda c: c.delta_bic) if c.delta_bic <= support
-             and np.isnan(c.heldout_nll_drop) and any(t in tuple((explains or {}).get(c.effect, ())) for t in terms)]
+             and np.isnan(c.heldout_nll_drop) and any(t in tuple((explains or {}).get(c.effect, ())) for t in backing)]
     if built:
         c = built[0]
-        axis, cov = next(t for t in terms if t in tuple(explains[c.effect]))
+        axis, cov = next(t for t in backing if t in tuple(explains[c.effect]))
         return c.effect, [
             f"The residuals point to {c.effect}: adding it lowers BIC by {-c.delta_bic:.1f}, and a sparse regression "
             f"of the motion residuals finds the {axis} residuals depending on {cov} (|t| >= {options.min_t:g}), the "
             f"structure it is built for. {c.explanation}"], {}
-    if strongest_t(found) < options.last_test_t:
+    if terms[0] not in backing or strongest_t(found) < options.last_test_t:
         return verdict_name, words, {}
     cov = terms[0][1]
     return f"unexplained:{cov}", [
