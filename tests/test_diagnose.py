@@ -208,6 +208,28 @@ def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_f
     assert v_ == "unexplained:time" and found            # scored on folds: the folds decided, not the terms
 
 
+def test_a_strong_structure_against_place_backs_a_candidate_only_when_a_place_pair_holds_across_visits():
+    """The strongest structure, turn residuals against place, follows the poses' wander (across visits p 0.8); the
+    carpet shows in a weaker pair, forward against x, that holds across visits: the friction candidate is built for
+    the structure only with that pair, a fade (time, no visits) either way."""
+    def report(forward_x_visits_p):
+        return {"turn": {"covariates": [{"name": "place", "strength": 0.034, "p": 1e-16, "kind": "mean",
+                                         "visits_p": 0.8, "visits": 33},
+                                        {"name": "time", "strength": 0.05, "p": 1e-30, "kind": "mean"}]},
+                "forward": {"covariates": [{"name": "x", "strength": 0.022, "p": 1e-11, "kind": "mean",
+                                            "visits_p": forward_x_visits_p, "visits": 68}]}}
+    explains = {"surface_friction": (("turn", "place"), ("forward", "x")), "battery_fade": (("turn", "time"),)}
+    friction, fade = (cand(n, -900, float("nan")) for n in ("surface_friction", "battery_fade"))
+    for visits_p, holds in ((0.003, True), (0.3, False)):
+        rep = report(visits_p)
+        strong = D.strong_structures(D.structures(rep))
+        assert [(s["channel"], s["name"]) for s in strong] == [("turn", "time"), ("turn", "place")]
+        matches = D.built_for(strong, explains, rep, D.structures(rep))
+        assert matches(friction) == holds and matches(fade)
+    rep = report(0.3)
+    assert D.built_for(D.strong_structures(D.structures(rep)), explains)(friction)          # no report: as before
+
+
 def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_visits():
     """The forward speed falling toward one side of the field (a floor's plane): the sparse regression's term in y
     names the friction candidate built for (forward, y) when the channel report says the dependence holds across

@@ -118,7 +118,8 @@ class DiagnoseOptions:
     #                                    structure of the model (0: no such test)
     visit_p: float = 0.01              # a motion channel's dependence on place (x, y or the floor's cells), as a
     #                                    candidate's own structure or a sparse-regression term, counts only when the
-    #                                    bins' means hold across the robot's visits: tested against the spread of the
+    #                                    bins' means hold across the robot's visits (a strong structure when one of the
+    #                                    candidate's own place pairs does): tested against the spread of the
     #                                    visits' means within each bin at this level (a floor slows the robot on every
     #                                    pass; noise that wanders for seconds differs from one pass to the next). Omni
     #                                    world, six minutes: the carpets' best place pair at 1e-13 to 0.003, an
@@ -586,12 +587,29 @@ def holds_across_visits(report: dict | None, channel: str, covariate: str, visit
     return t is None or "visits_p" not in t or t["visits_p"] < visit_p
 
 
+def place_repeats(c, explains: dict, report: dict | None, options: DiagnoseOptions = DEFAULTS) -> bool:
+    """Whether one of ``c``'s own motion pairs against place, significant at its own pairs' level (as
+    :func:`own_structure` tests them), holds across the robot's visits; True without a ``report`` or with
+    ``options.visit_p`` 0."""
+    if not report or options.visit_p <= 0:
+        return True
+    tests = [(ch, t) for ch, r in report.items() for t in r.get("covariates", [])]
+    own = [t for ch, t in tests if (ch, t["name"]) in tuple(explains.get(c.effect, ()))]
+    p = options.structure_p * len(tests) / max(len(own), 1)
+    return any(t["p"] < p and t.get("visits_p", 1.0) < options.visit_p for t in own)
+
+
 def built_for(strong: list[dict], explains: dict, report: dict | None = None, structure: list[dict] = (),
               options: DiagnoseOptions = DEFAULTS) -> Callable:
     """Whether a candidate is the effect built for one of the ``strong`` structures (its class's ``explains``), or,
-    given the channel ``report``, for a structure of its own (:func:`own_structure`)."""
+    given the channel ``report``, for a structure of its own (:func:`own_structure`). A strong motion structure
+    against place counts only when one of the candidate's own place pairs holds across the robot's visits
+    (:func:`place_repeats`): the strongest pair may follow the poses' wander while a weaker one carries the floor
+    (the omni world's carpet seed 4: turn residuals against place, p 1e-16, across visits 0.8; forward against x
+    across visits 0.003)."""
     def matches(c) -> bool:
-        return (any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ())) for s in strong)
+        return (any((s["channel"], s["name"]) in tuple(explains.get(c.effect, ()))
+                    and ("visits_p" not in s or place_repeats(c, explains, report, options)) for s in strong)
                 or own_structure(c, explains, report, structure, options) is not None)
     return matches
 
