@@ -187,19 +187,23 @@ def test_a_mixture_named_last_comes_after_a_supported_effect_with_structure():
     assert D.verdict(cands, [], explains, last=("false_detections",))[0] == "false_detections"   # alone supported
 
 
-def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_for():
-    """A forward speed falling slowly with time (a weak battery fade) and no bin test: the sparse regression's
-    term in time names the candidate built for (forward, time) when no folds scored it."""
-    rng = np.random.default_rng(0)
-    n, dt = 6000, 0.1
+def motion_channels(seed, forward, n=6000, dt=0.1):
+    """Motion channels of a robot at random poses with random commands: the forward residual ``forward(v, t, pose)``
+    (m/s) over each step, the others zero, plus noise."""
+    rng = np.random.default_rng(seed)
     t = np.arange(n) * dt
     v = np.column_stack([0.2 + 0.05 * rng.random(n), np.zeros(n), 0.3 * rng.standard_normal(n)])
     pose = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-np.pi, np.pi, n)])
     cov = {"time": t, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2]}
-    span = np.full(n, dt)
-    raw = {"forward": -0.02 * v[:, 0] * t / 60.0 * dt, "lateral": np.zeros(n), "turn": np.zeros(n)}
-    chs = {a: Channel(a, (raw[a] + 0.002 * rng.standard_normal(n)) / 0.002, raw[a] + 0.002 * rng.standard_normal(n),
-                      t, cov, command=v[:, k], span=span) for k, a in enumerate(("forward", "lateral", "turn"))}
+    raw = {"forward": forward(v[:, 0], t, pose) * dt, "lateral": np.zeros(n), "turn": np.zeros(n)}
+    return {a: Channel(a, (raw[a] + 0.002 * rng.standard_normal(n)) / 0.002, raw[a] + 0.002 * rng.standard_normal(n),
+                       t, cov, command=v[:, k], span=np.full(n, dt)) for k, a in enumerate(("forward", "lateral", "turn"))}
+
+
+def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_for():
+    """A forward speed falling slowly with time (a weak battery fade) and no bin test: the sparse regression's
+    term in time names the candidate built for (forward, time) when no folds scored it."""
+    chs = motion_channels(0, lambda v, t, pose: -0.02 * v * t / 60.0)
     explains = {"battery_fade": (("forward", "time"),)}
     v_, words, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, float("nan"))],
                                   explains)
@@ -234,15 +238,7 @@ def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_
     """The forward speed falling toward one side of the field (a floor's plane): the sparse regression's term in y
     names the friction candidate built for (forward, y) when the channel report says the dependence holds across
     the robot's visits, and not when it says the visits disagree (slip that wanders, as a report would show it)."""
-    rng = np.random.default_rng(2)
-    n, dt = 6000, 0.1
-    t = np.arange(n) * dt
-    v = np.column_stack([0.2 + 0.05 * rng.random(n), np.zeros(n), 0.3 * rng.standard_normal(n)])
-    pose = np.column_stack([rng.uniform(-2, 2, n), rng.uniform(-2, 2, n), rng.uniform(-np.pi, np.pi, n)])
-    cov = {"time": t, "x": pose[:, 0], "y": pose[:, 1], "heading": pose[:, 2]}
-    raw = {"forward": -0.03 * v[:, 0] * pose[:, 1] * dt, "lateral": np.zeros(n), "turn": np.zeros(n)}
-    chs = {a: Channel(a, (raw[a] + 0.002 * rng.standard_normal(n)) / 0.002, raw[a] + 0.002 * rng.standard_normal(n),
-                      t, cov, command=v[:, k], span=np.full(n, dt)) for k, a in enumerate(("forward", "lateral", "turn"))}
+    chs = motion_channels(2, lambda v, t, pose: -0.03 * v * pose[:, 1])
     explains = {"surface_friction": (("forward", "y"),)}
     friction = [cand("surface_friction", -600, float("nan"))]
 
