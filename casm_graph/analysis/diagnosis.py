@@ -565,26 +565,35 @@ def own_structure(c, explains: dict, report: dict, structure: list[dict],
     has held-out folds (they are its second line) or ``options.own_structure`` is off."""
     if not options.own_structure or c.heldout_skipped != NO_FOLDS or not report:
         return None
-    tests = [(ch, t) for ch, r in report.items() for t in r.get("covariates", [])]
-    own = [(ch, t) for ch, t in tests if (ch, t["name"]) in tuple(explains.get(c.effect, ()))]
-    if not own:
-        return None
-    p = options.structure_p * len(tests) / len(own)
+    own, p = own_pairs(c, explains, report, options)
     floor = max(options.structure_omega2, options.structure_share * (structure[0]["strength"] if structure else 0.0))
     found = [{"channel": ch, **t, "p_threshold": p} for ch, t in own
-             if t["p"] < p and t["strength"] >= floor and t["kind"] != "feedback"
-             and holds_across_visits(report, ch, t["name"], options.visit_p)]
+             if t["p"] < p and t["strength"] >= floor and t["kind"] != "feedback" and repeats(t, options.visit_p)]
     return max(found, key=lambda t: t["strength"]) if found else None
+
+
+def own_pairs(c, explains: dict, report: dict, options: DiagnoseOptions = DEFAULTS) -> tuple[list, float]:
+    """(channel, test) of each of ``c``'s own pairs the channel ``report`` ran, and the p they are tested at:
+    ``options.structure_p`` times the report's tests over the own pairs among them (one family-wise error)."""
+    tests = [(ch, t) for ch, r in report.items() for t in r.get("covariates", [])]
+    own = [(ch, t) for ch, t in tests if (ch, t["name"]) in tuple(explains.get(c.effect, ()))]
+    return own, options.structure_p * len(tests) / max(len(own), 1)
+
+
+def repeats(test: dict, visit_p: float) -> bool:
+    """Whether a covariate test holds across the robot's visits (``visits_p`` below ``visit_p``); True when it was
+    not tested so (not a motion pair against place, too few visits) or ``visit_p`` is 0 (the test off)."""
+    return visit_p <= 0 or "visits_p" not in test or test["visits_p"] < visit_p
 
 
 def holds_across_visits(report: dict | None, channel: str, covariate: str, visit_p: float) -> bool:
     """Whether the ``channel`` residuals' dependence on ``covariate`` holds across the robot's visits, as the channel
     ``report`` tested it (``visits_p`` below ``visit_p``); True for a covariate that is not a place, one not
     tested so, or ``visit_p`` 0 (the test off)."""
-    if covariate not in PLACE_COVARIATES or visit_p <= 0 or not report:
+    if covariate not in PLACE_COVARIATES or not report:
         return True
     t = next((t for t in report.get(channel, {}).get("covariates", []) if t["name"] == covariate), None)
-    return t is None or "visits_p" not in t or t["visits_p"] < visit_p
+    return t is None or repeats(t, visit_p)
 
 
 def place_repeats(c, explains: dict, report: dict | None, options: DiagnoseOptions = DEFAULTS) -> bool:
@@ -593,10 +602,8 @@ def place_repeats(c, explains: dict, report: dict | None, options: DiagnoseOptio
     ``options.visit_p`` 0."""
     if not report or options.visit_p <= 0:
         return True
-    tests = [(ch, t) for ch, r in report.items() for t in r.get("covariates", [])]
-    own = [t for ch, t in tests if (ch, t["name"]) in tuple(explains.get(c.effect, ()))]
-    p = options.structure_p * len(tests) / max(len(own), 1)
-    return any(t["p"] < p and t.get("visits_p", 1.0) < options.visit_p for t in own)
+    own, p = own_pairs(c, explains, report, options)
+    return any(t["p"] < p and "visits_p" in t and repeats(t, options.visit_p) for _, t in own)
 
 
 def built_for(strong: list[dict], explains: dict, report: dict | None = None, structure: list[dict] = (),
