@@ -252,6 +252,21 @@ def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_
     assert D.discover("none", [], chs, D.ProposalOptions(), friction, explains)[0] == "surface_friction"   # no report
 
 
+def test_an_unexplained_verdict_needs_a_dependence_on_place_that_holds_across_visits():
+    """No candidate supported and the only material structure turn residuals against place: each visit's own
+    offset (across visits p 0.4) is the slip's wander, verdict none with the words saying why; the same dependence
+    holding across visits, or a weaker one on time beside it, is something the model lacks."""
+    place = {"channel": "turn", "name": "place", "strength": 0.03, "p": 1e-12, "kind": "mean", "visits_p": 0.4,
+             "visits": 40}
+    time = {"channel": "forward", "name": "time", "strength": 0.02, "p": 1e-9, "kind": "mean"}
+    weak = [cand("surface_friction", -40, float("nan"))]
+    v, words = D.verdict(weak, [place])
+    assert v == "none" and "not across the robot's 40 visits" in " ".join(words), words
+    assert D.verdict(weak, [place, time])[0] == "unexplained:time"
+    assert D.verdict(weak, [{**place, "visits_p": 0.001}])[0] == "unexplained:place"
+    assert D.verdict(weak, [place], options=D.DiagnoseOptions(visit_p=0.0))[0] == "unexplained:place"   # test off
+
+
 def test_verdict_rule():
     strong = {"channel": "forward", "name": "heading", "strength": 0.05, "p": 1e-12, "kind": "mean"}
     assert D.verdict([cand("actuator_lag", -50, 10), cand("battery_fade", -20, 5)], [strong])[0] == "actuator_lag"

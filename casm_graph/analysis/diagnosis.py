@@ -19,7 +19,8 @@
 3. The verdict names the candidate that BIC supports strongly and that either improves the
    held-out score or was built for the strongest residual structure; ``none`` when no candidate is
    supported and no channel shows material structure; ``unexplained:<covariate>`` when structure
-   remains that no candidate accounts for.
+   remains that no candidate accounts for (a motion dependence on place only when it holds across the robot's
+   visits).
 """
 from __future__ import annotations
 
@@ -643,8 +644,11 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     (a continuous log's false-detection mixture, scored on the sightings the gate sets aside, whose delta BIC is
     not on the others' scale: a strong lens sends sightings beyond the gate too). Given the channel ``report``, a
     candidate without held-out folds may also be built for a structure of its own (:func:`own_structure`). A
-    candidate whose fit cannot happen (``implausible``) is set aside, and the words say so.
-    """
+    candidate whose fit cannot happen (``implausible``) is set aside, and the words say so. With no candidate
+    supported, the verdict is ``unexplained:`` the strongest structure that holds across the robot's visits
+    (:func:`repeats`), else ``none``: a motion dependence on place that each visit shows with its own offset is the
+    slip's wander, not something the model lacks (the wheel world's effect-free seed 0, turn residuals against
+    place)."""
     words = []
     explains = explains or {}
     o = options
@@ -697,8 +701,9 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
             words.append("Also lowering BIC strongly, not scored on held-out folds (the verdict does not depend on "
                          "them): " + ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in unscored) + ".")
         return best.effect, words + aside
-    if structure:
-        s = structure[0]
+    lasting = [s for s in structure if repeats(s, o.visit_p)]
+    if lasting:
+        s = lasting[0]
         words.append(f"No catalog effect explains the data better, but the {s['channel']} residuals' "
                      f"{s['kind']} follows {s['name']} (it explains {100 * s['strength']:.1f} % of their variance, "
                      f"p = {s['p']:.1e}). Something the model and the catalog lack depends on {s['name']}.")
@@ -707,17 +712,23 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
                          "falls as 1/distance, which a polynomial in the distance follows badly near the landmarks; "
                          "calibrate again with --sensor-basis inverse_distance (or a higher --max-sensor-degree).")
         return f"unexplained:{s['name']}", words + aside
+    quiet = "no channel's residuals depend materially on any covariate" + (
+        " that holds across the robot's visits" if structure else "")
     gaining = sorted((c for c in cands if c.delta_bic <= o.bic_support and not c.implausible),
                      key=lambda c: c.delta_bic)
     if gaining:
         named = ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in gaining[:3])
         words.append(f"The model explains the data: {named} lower BIC, but no second line agrees (no held-out gain, "
-                     "no residual structure they are built for), and no channel's residuals depend materially on any "
-                     "covariate. A flexible effect lowers BIC by following the motion noise's slow wander, which "
-                     "BIC scores as if each step's noise were independent.")
+                     f"no residual structure they are built for), and {quiet}. A flexible effect lowers BIC by "
+                     "following the motion noise's slow wander, which BIC scores as if each step's noise were "
+                     "independent.")
     else:
         words.append("The model explains the data: no candidate effect lowers BIC by more than "
-                     f"{-o.bic_support:g} and no channel's residuals depend materially on any covariate.")
+                     f"{-o.bic_support:g} and {quiet}.")
+    words += [f"The {s['channel']} residuals depend on {s['name']} ({100 * s['strength']:.1f} % of their variance, "
+              f"p = {s['p']:.1e}), but not across the robot's {s['visits']} visits to each place (p = "
+              f"{s['visits_p']:.2f}): each pass has its own offset, as slip that wanders for seconds leaves, where a "
+              "floor slows the robot on every pass." for s in structure[:1]]
     return "none", words + aside
 
 
