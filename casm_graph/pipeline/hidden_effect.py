@@ -65,6 +65,12 @@ class Trial:
     change: dict | None = None          # the second diagnosis against the first (analysis.before_after)
     truth: dict = field(default_factory=dict)
     seconds: float = 0.0
+    lookalikes: list = field(default_factory=list)   # the first diagnosis's look-alike groups (their effects)
+
+    def named(self, effect: str | None) -> bool:
+        """Whether the first diagnosis named ``effect`` (``None``: none), or a look-alike group holding it."""
+        want = effect or "none"
+        return self.verdict == want or any(want in g for g in self.lookalikes)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -91,7 +97,7 @@ def run(effect: str | None, value: float, seed: int, minutes: float, workdir: st
     cands = [c.to_json() for c in diag.candidates]
     gain = next((c["heldout_nll_drop"] for c in cands if c["effect"] == effect), None)
     trial = Trial(effect, value, seed, minutes, diag.verdict, cands, gain, model_error(fit.model, truth),
-                  truth=truth.get("effects", {}))
+                  truth=truth.get("effects", {}), lookalikes=[g["effects"] for g in diag.lookalikes])
     named = diag.verdict if diag.verdict in {c["effect"] for c in cands} else None
     if after and named:
         cls = effect_class if effect_class is not None and named == effect_class.name else diag.to_add()
