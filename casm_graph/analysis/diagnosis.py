@@ -647,8 +647,8 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     candidate whose fit cannot happen (``implausible``) is set aside, and the words say so. With no candidate
     supported, the verdict is ``unexplained:`` the strongest structure that holds across the robot's visits
     (:func:`repeats`), else ``none``: a motion dependence on place that each visit shows with its own offset is the
-    slip's wander, not something the model lacks (the wheel world's effect-free seed 0, turn residuals against
-    place)."""
+    slip's wander, not something the model lacks (the wheel world's effect-free seed 0: lateral residuals against
+    place, p 3e-30, across its 32 visits p 0.17)."""
     words = []
     explains = explains or {}
     o = options
