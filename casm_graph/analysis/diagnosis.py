@@ -118,7 +118,8 @@ class DiagnoseOptions:
     #                                    this lead) more than its own is the controller correcting the noise, not
     #                                    structure of the model (0: no such test)
     visit_p: float = 0.01              # a motion channel's dependence on place (x, y or the floor's cells), as a
-    #                                    candidate's own structure or a sparse-regression term, counts only when the
+    #                                    candidate's own structure, a sparse-regression term or the structure an
+    #                                    unexplained verdict names, counts only when the
     #                                    bins' means hold across the robot's visits (a strong structure when one of the
     #                                    candidate's own place pairs does): tested against the spread of the
     #                                    visits' means within each bin at this level (a floor slows the robot on every
@@ -725,10 +726,12 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     else:
         words.append("The model explains the data: no candidate effect lowers BIC by more than "
                      f"{-o.bic_support:g} and {quiet}.")
-    words += [f"The {s['channel']} residuals depend on {s['name']} ({100 * s['strength']:.1f} % of their variance, "
-              f"p = {s['p']:.1e}), but not across the robot's {s['visits']} visits to each place (p = "
-              f"{s['visits_p']:.2f}): each pass has its own offset, as slip that wanders for seconds leaves, where a "
-              "floor slows the robot on every pass." for s in structure[:1]]
+    if structure:                    # every structure fails the visits test: the strongest is the slip's wander
+        s = structure[0]
+        words.append(f"The {s['channel']} residuals depend on {s['name']} ({100 * s['strength']:.1f} % of their "
+                     f"variance, p = {s['p']:.1e}), but not across the robot's {s['visits']} visits to each place (p = "
+                     f"{s['visits_p']:.2f}): each pass has its own offset, as slip that wanders for seconds leaves, "
+                     "where a floor slows the robot on every pass.")
     return "none", words + aside
 
 
