@@ -234,6 +234,28 @@ def test_a_strong_structure_against_place_backs_a_candidate_only_when_a_place_pa
     assert D.built_for(D.strong_structures(D.structures(rep)), explains)(friction)          # no report: as before
 
 
+def test_a_weak_place_pair_backs_its_candidate_when_it_holds_across_visits_strongly():
+    """A carpet that slows the robot a little leaves forward residuals against y under the 1 % strength floor but
+    the same on every pass (the continuous world's carpet seed 5: 0.59 %, across 169 visits p 7e-7): below
+    ``visit_strong_p`` it backs the friction candidate as its own structure; at the ordinary visits level, or a
+    pair not against place, it does not."""
+    def report(visits_p):
+        return {"forward": {"covariates": [{"name": "y", "strength": 0.0059, "p": 3e-8, "kind": "mean",
+                                            "visits_p": visits_p, "visits": 169},
+                                           {"name": "time", "strength": 0.0059, "p": 3e-8, "kind": "mean"}]}}
+    explains = {"surface_friction": (("forward", "y"),), "battery_fade": (("forward", "time"),)}
+    friction, fade = (D.Candidate(n, "motion", -19162.0, float("nan"), "because", 10.0, heldout_skipped=D.NO_FOLDS)
+                      for n in ("surface_friction", "battery_fade"))
+    found = D.own_structure(friction, explains, report(7e-7), [])
+    assert found is not None and found["name"] == "y" and found["visits_p"] == 7e-7
+    assert D.own_structure(friction, explains, report(2e-3), []) is None
+    assert D.own_structure(fade, explains, report(7e-7), []) is None
+    assert D.own_structure(friction, explains, report(7e-7), [], D.DiagnoseOptions(visit_strong_p=0.0)) is None
+    v, words = D.verdict([friction], [], explains, report=report(7e-7))
+    assert v == "surface_friction" and "169 visits" in words[0]
+    assert D.verdict([friction], [], explains, report=report(2e-3))[0] == "none"
+
+
 def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_visits():
     """The forward speed falling toward one side of the field (a floor's plane): the sparse regression's term in y
     names the friction candidate built for (forward, y) when the channel report says the dependence holds across
