@@ -217,6 +217,8 @@ def _effects(w: Where, effects) -> dict:
             v = w.vec(entry["visits"], f"effects.{name}.visits", n=int(grid.prod()), nonneg=True)
             if abs(float(np.sum(v)) - 1.0) > 1e-3:
                 w.fail(f"effects.{name}.visits", "must be shares of the steps that sum to 1")
+        if entry.get("frame") is not None:
+            w.vec(entry["frame"], f"effects.{name}.frame", n=3)
         if cls.orders and entry.get("order") is not None and entry["order"] not in cls.orders:
             w.fail(f"effects.{name}.order", f"must be one of {list(cls.orders)}")
         if name == "regional_motion_noise":

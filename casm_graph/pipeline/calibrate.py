@@ -15,6 +15,7 @@ import numpy as np
 
 from casm_graph.baselines import scasm_run
 from casm_graph.fit.calibration import CalibrateOptions, Calibration, read_truth_model, trajectory_array
+from casm_graph.fit.frame import in_map_frame
 from casm_graph.fit.methods import METHODS, Fit, Progress
 from casm_graph.fit.methods.kinds import kind
 from casm_graph.fit.result import LIKELIHOOD_DROP
@@ -87,7 +88,7 @@ def calibrate(log: Log, options: CalibrateOptions | None = None, progress: Progr
     heading = part.step_heading if options.step_heading == "auto" else options.step_heading
     start = part.start_model(log, options.sensor_degree, start_basis(options), cross=options.cross_terms is True,
                              step_heading=heading)
-    fit = part.calibrate(log, start, options, classes, progress)
+    fit = in_map_frame(log, part.calibrate(log, start, options, classes, progress), classes)
     warn_if_worse(fit, classes)
     warn_if_unphysical(log, fit, classes)
     warn_if_loose(log, fit)

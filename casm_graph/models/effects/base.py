@@ -40,6 +40,8 @@ class Effect:
     noise_only: bool = False                # parameters set by the noise step, not least squares
     continuous_only: bool = False           # needs continuous (v, w) commands: the action-table simulator refuses it
     uses_velocity: bool = False             # its sensor hooks read ctx["velocity"] (the body velocity at the sighting)
+    map_bound: bool = False                 # its hooks read where the robot is or which way it faces on the map (a field
+                                            # over the floor): a fit may not move the map's frame under it
     velocity_window: str = ""               # the parameter (s) over which that velocity is averaged before the sighting
                                             # on continuous commands (empty: the step that ends at the sighting)
     orders: tuple[int, ...] = ()            # a family's complexities, compared by BIC in a diagnosis (empty: one form)
@@ -93,6 +95,12 @@ class Effect:
     def implausible(self, theta: np.ndarray) -> str | None:
         """None when ``theta`` describes physics that can happen, else why not (a floor that makes the robot several
         times faster): such a fit fits something else, and a diagnosis keeps it out of its verdict."""
+        return None
+
+    def reframe(self, theta: np.ndarray) -> np.ndarray | None:
+        """After a fit: an effect whose parameters leave the map's frame free (moving every landmark together)
+        chooses it, keeps it, and returns the rigid motion (phi, tx, ty) the poses make with it; None: no such
+        freedom."""
         return None
 
     def simulate_params(self, value: float, rng: np.random.Generator) -> np.ndarray:

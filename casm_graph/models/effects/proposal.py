@@ -151,6 +151,7 @@ def proposal_effect(coefficients: dict) -> type[Effect]:
         params = names
         scale = tuple(max(abs(s), 1e-3) for s in start)
         explains = tuple((a, "proposal") for a in AXES if by_axis[a])
+        map_bound = any(re.search(r"\b[xy]\b|heading", term) for _, term in terms)
         physics = ("Proposed by the diagnosis from the motion residuals (a sparse regression over a library of "
                    "terms, no catalog physics): " + "; ".join(equation(coefficients)) + ".")
 

@@ -120,6 +120,7 @@ def from_entry(e: dict) -> tuple[Regions, np.ndarray]:
 class RegionalMotionNoise(Effect):
     name = "regional_motion_noise"
     channel = "motion"
+    map_bound = True
     params = ("k_r", "k_t", "k_d")          # per region of the grid
     start = (0.002, 0.01, 0.002)
     scale = (0.002, 0.01, 0.002)

@@ -76,6 +76,7 @@ def shape(order: int) -> tuple[tuple, tuple, tuple]:
 class SurfaceFriction(Effect):
     name = "surface_friction"
     channel = "motion"
+    map_bound = True
     params, start, scale = shape(NODES)
     orders = (PATCH, 1, 2, 3, NODES)    # 0: a patch; 1: a plane; K: nodes per axis
     order = NODES
