@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from casm_graph.fit.result import Fit
-from casm_graph.io.log import Log
+from casm_graph.io.log import Log, wrap
 
 
 def moved(poses: np.ndarray, std: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -22,7 +22,7 @@ def moved(poses: np.ndarray, std: np.ndarray, g: np.ndarray) -> tuple[np.ndarray
     out[:, 0], out[:, 1] = c * poses[:, 0] - s * poses[:, 1] + g[1], s * poses[:, 0] + c * poses[:, 1] + g[2]
     out[:, 2] = poses[:, 2] + g[0]
     if np.all(np.abs(poses[:, 2]) <= np.pi):             # headings given wrapped stay wrapped
-        out[:, 2] = np.angle(np.exp(1j * out[:, 2]))
+        out[:, 2] = wrap(out[:, 2])
     sd = np.array(std, float)
     sd[:, 0] = np.sqrt((c * std[:, 0]) ** 2 + (s * std[:, 1]) ** 2)   # the x, y correlation is not kept
     sd[:, 1] = np.sqrt((s * std[:, 0]) ** 2 + (c * std[:, 1]) ** 2)
@@ -39,7 +39,7 @@ def in_map_frame(log: Log, fit: Fit, classes) -> Fit:
         if entry is None:
             continue
         effect = cls(log)
-        theta = effect.theta_of(dict(entry))
+        theta = effect.theta_of(entry)
         g = effect.reframe(theta)
         if g is None:
             continue

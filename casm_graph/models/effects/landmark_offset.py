@@ -9,8 +9,8 @@ from casm_graph.models.effects.base import Effect, register
 
 PRIOR_SIGMA = 0.5   # m, on each shape coordinate
 FRAME_SCALE = 0.005  # m: offsets beyond this count by their length, not its square, when the frame is chosen
-FRAME_LANDMARKS = 5  # the frame is chosen from five landmarks up (with four, one moved landmark among 200 random maps
-#                      left the others farther off in 16 % of them; with five, 0.5 %)
+FRAME_LANDMARKS = 5  # the frame is chosen from five landmarks up: with four, the three unmoved ones cannot outvote the
+#                      moved one and the move's scale part, and often end farther off than in the shape's own frame
 
 
 def rotation(phi: float) -> np.ndarray:
