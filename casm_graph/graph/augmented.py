@@ -9,6 +9,9 @@ other motion effects.
 """
 from __future__ import annotations
 
+import copy
+import itertools
+
 import numpy as np
 
 import factors
@@ -31,6 +34,19 @@ def instantiate(names_or_effects, log: Log) -> list[Effect]:
         if isinstance(e, str):
             e = get_effect(e)
         out.append(e(log) if isinstance(e, type) else e)
+    return out
+
+
+def at_prior_widths(names_or_effects, log: Log) -> list[list[Effect]]:
+    """Effect instances for ``log``, one list per combination of the ``prior_widths`` of the classes that offer a
+    choice (a single list when none does)."""
+    first = instantiate(names_or_effects, log)
+    out = []
+    for widths in itertools.product(*(e.prior_widths if len(e.prior_widths) > 1 else (e.prior_width,) for e in first)):
+        effects = [copy.copy(e) for e in first]
+        for e, w in zip(effects, widths):
+            e.prior_width = w
+        out.append(effects)
     return out
 
 
@@ -64,7 +80,8 @@ def parameter_slices(effects: list[Effect]) -> list[slice]:
 
 
 def parameter_prior(effects: list[Effect], slices: list[slice]) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, sigma) of the prior on the least-squares effect parameters: each effect's own, else weak around 0."""
+    """(mean, sigma) of the prior on the least-squares effect parameters: each effect's own (at its
+    ``prior_width``), else weak around 0."""
     pm, ps = [np.zeros(0)], [np.zeros(0)]
     for e, s in zip(effects, slices):
         if e.noise_only:
@@ -75,7 +92,7 @@ def parameter_prior(effects: list[Effect], slices: list[slice]) -> tuple[np.ndar
             ps.append(EFFECT_PRIOR_SCALE * np.maximum(np.asarray(e.scale, float), 1e-6))
         else:
             pm.append(np.asarray(pr[0], float))
-            ps.append(np.asarray(pr[1], float))
+            ps.append(np.asarray(pr[1], float) * e.prior_width)
     return np.concatenate(pm), np.concatenate(ps)
 
 

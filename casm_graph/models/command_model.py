@@ -123,6 +123,13 @@ class CommandModel:
             return self
         return replace(self, w_coef=np.append(self.w_coef, 0.0), w_std=None, v_std=None, cross=True)
 
+    def scaled(self, s: float) -> "CommandModel":
+        """The maps on a map ``s`` times as large: the forward and sideways maps (and their std) times ``s``."""
+        def times(a):
+            return None if a is None else np.asarray(a, float) * s
+        return replace(self, v_coef=times(self.v_coef), v_std=times(self.v_std), y_coef=times(self.y_coef),
+                       y_std=times(self.y_std))
+
     def same_form(self, controls: np.ndarray, gain: float = 1.0) -> "CommandModel":
         """A map of this one's degrees and cross terms sized for ``controls``, ``gain`` times the identity."""
         nv, ny, nw = self.sizes

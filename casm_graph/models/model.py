@@ -125,6 +125,20 @@ class Model:
         squares (an EM M-step): each action's mean velocity, or the command map's regression on its basis."""
         return self.with_action(self.action.fitted_to_steps(log, moved))
 
+    def scaled(self, s: float) -> "Model":
+        """The same model on a map ``s`` times as large (poses and landmarks scaled about the origin): velocities,
+        the motion noise's x and y and the distance range times ``s``, the sensor curve reading at distance d what
+        it read at d / s; the sightings' likelihood does not change."""
+        k = np.arange(len(self.reading_poly))
+        f = float(s) ** (k if self.reading_basis == "inverse_distance" else -k)
+        cov = self.reading_poly_cov
+        return self.with_action(self.action.scaled(s)).with_(
+            reading_poly=np.asarray(self.reading_poly, float) * f,
+            reading_poly_std=None if self.reading_poly_std is None else np.asarray(self.reading_poly_std, float) * f,
+            reading_poly_cov=None if cov is None else np.asarray(cov, float) * np.outer(f, f),
+            motion_noise=np.asarray(self.motion_noise, float) * [s, s, 1.0],
+            distance_range=tuple(float(d) * s for d in self.distance_range))
+
     def with_(self, **kw) -> "Model":
         return replace(self, **kw)
 
@@ -218,7 +232,11 @@ def _effects(w: Where, effects) -> dict:
             if abs(float(np.sum(v)) - 1.0) > 1e-3:
                 w.fail(f"effects.{name}.visits", "must be shares of the steps that sum to 1")
         if entry.get("frame") is not None:
-            w.vec(entry["frame"], f"effects.{name}.frame", n=3)
+            frame = w.vec(entry["frame"], f"effects.{name}.frame")
+            if len(frame) not in (3, 4) or (len(frame) == 4 and not frame[3] > 0):
+                w.fail(f"effects.{name}.frame", "must be [phi, tx, ty] or [phi, tx, ty, scale] with scale > 0")
+        if entry.get("prior_width") is not None:
+            w.num(entry["prior_width"], f"effects.{name}.prior_width", positive=True)
         if cls.orders and entry.get("order") is not None and entry["order"] not in cls.orders:
             w.fail(f"effects.{name}.order", f"must be one of {list(cls.orders)}")
         if name == "regional_motion_noise":

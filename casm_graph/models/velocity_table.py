@@ -60,6 +60,12 @@ class VelocityTable:
         kw = {} if std is None else {"velocity_std": np.asarray(std, float).reshape(-1, 3)}
         return replace(self, velocities=np.asarray(p, float).reshape(-1, 3), **kw)
 
+    def scaled(self, s: float) -> "VelocityTable":
+        """The table on a map ``s`` times as large: the forward and sideways velocities (and their std) times ``s``."""
+        f = np.array([s, s, 1.0])
+        return replace(self, velocities=np.asarray(self.velocities, float) * f,
+                       velocity_std=None if self.velocity_std is None else np.asarray(self.velocity_std, float) * f)
+
     def rows_of(self, action: np.ndarray) -> np.ndarray:
         """(n,) the table's row of each action id in ``action``."""
         return np.searchsorted(self.action_ids, action)

@@ -66,6 +66,7 @@ def memory(dt: np.ndarray, lag: float, order: int = 1) -> np.ndarray:
 @register
 class ActuatorLag(Effect):
     name = "actuator_lag"
+    scale_free = True
     channel = "motion"
     params = ("tau",)
     start = (0.005,)

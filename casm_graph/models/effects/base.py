@@ -42,10 +42,17 @@ class Effect:
     uses_velocity: bool = False             # its sensor hooks read ctx["velocity"] (the body velocity at the sighting)
     map_bound: bool = False                 # its hooks read where the robot is or which way it faces on the map (a field
                                             # over the floor): a fit may not move the map's frame under it
+    scale_free: bool = False                # no parameter holds a length (a delay, a share, an image angle): the map may be
+                                            # scaled under it, the action model and sensor curve following
     velocity_window: str = ""               # the parameter (s) over which that velocity is averaged before the sighting
                                             # on continuous commands (empty: the step that ends at the sighting)
     orders: tuple[int, ...] = ()            # a family's complexities, compared by BIC in a diagnosis (empty: one form)
     order: int | None = None                # this class's complexity among ``orders``
+    prior_widths: tuple[float, ...] = (1.0,)  # multiples of ``prior``'s sigma an action-table calibration fits under,
+                                            # keeping the fit of highest likelihood (a loose prior lets many
+                                            # parameters wander where the data hardly pin them, a tight one holds a
+                                            # large effect back)
+    prior_width: float = 1.0                # the multiple this instance's prior is taken at
 
     def __init__(self, log: Log | None = None, order: int | None = None):
         self.log = log
@@ -97,10 +104,10 @@ class Effect:
         times faster): such a fit fits something else, and a diagnosis keeps it out of its verdict."""
         return None
 
-    def reframe(self, theta: np.ndarray) -> np.ndarray | None:
+    def reframe(self, theta: np.ndarray, scale: bool = False) -> np.ndarray | None:
         """After a fit: an effect whose parameters leave the map's frame free (moving every landmark together)
-        chooses it, keeps it, and returns the rigid motion (phi, tx, ty) the poses make with it; None: no such
-        freedom."""
+        chooses it, keeps it, and returns the similarity (phi, tx, ty, s) the poses make with it, s = 1 unless
+        ``scale`` (every effect of the model ``scale_free``); None: no such freedom."""
         return None
 
     def simulate_params(self, value: float, rng: np.random.Generator) -> np.ndarray:
@@ -108,7 +115,12 @@ class Effect:
         return np.array([value], float)
 
     def describe(self, theta: np.ndarray) -> dict:
-        return {**{p: float(v) for p, v in zip(self.params, theta)}, **({"order": self.order} if self.orders else {})}
+        return {**{p: float(v) for p, v in zip(self.params, theta)}, **({"order": self.order} if self.orders else {}),
+                **self.described_width()}
+
+    def described_width(self) -> dict:
+        """The prior's width for a model.json entry where it is not the prior itself (a calibration chose it)."""
+        return {"prior_width": float(self.prior_width)} if self.prior_width != 1.0 else {}
 
     def theta_of(self, entry: dict) -> np.ndarray:
         """The parameters a model.json ``entry`` records (its start where one is absent), after taking back what
@@ -118,9 +130,11 @@ class Effect:
 
     def restore(self, entry: dict) -> None:
         """Take back what ``describe`` recorded beside the parameters from a model.json entry: a family's order
-        (its parameters follow), and in a subclass what else it records (a field's extent)."""
+        (its parameters follow), the prior's width, and in a subclass what else it records (a field's extent)."""
         if self.orders and entry.get("order") is not None:
             self.set_order(int(entry["order"]))
+        if entry.get("prior_width") is not None:
+            self.prior_width = float(entry["prior_width"])
 
     # ------------------------------------------------------------------- hooks
     def velocity(self, theta: np.ndarray, v: np.ndarray, ctx: dict) -> np.ndarray:

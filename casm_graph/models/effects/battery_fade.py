@@ -12,6 +12,7 @@ from casm_graph.models.effects.base import Effect, register
 @register
 class BatteryFade(Effect):
     name = "battery_fade"
+    scale_free = True
     channel = "motion"
     params = ("loss_per_minute",)
     start = (0.0,)

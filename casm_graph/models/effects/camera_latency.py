@@ -9,6 +9,7 @@ from casm_graph.models.effects.base import Effect, register
 @register
 class CameraLatency(Effect):
     name = "camera_latency"
+    scale_free = True
     channel = "sensor"
     params = ("delay",)
     start = (0.0,)

@@ -48,6 +48,7 @@ def mixture_terms(reading: np.ndarray, bearing: np.ndarray, reading_sigma, beari
 @register
 class FalseDetections(Effect):
     name = "false_detections"
+    scale_free = True
     channel = "sensor"
     params = ("fraction",)
     start = (0.01,)

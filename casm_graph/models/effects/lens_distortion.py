@@ -12,6 +12,7 @@ from casm_graph.models.effects.base import Effect, register
 @register
 class LensDistortion(Effect):
     name = "lens_distortion"
+    scale_free = True
     channel = "sensor"
     params = ("k",)
     start = (0.0,)

@@ -41,12 +41,19 @@ def on_step_graph(log: Log, fit: Fit) -> Fit:
 
 
 def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress | None = None) -> Fit:
-    """Refit ``fit`` with ``effects`` added (warm start); std of poses, table and polynomial from the effect graph."""
+    """Refit ``fit`` with ``effects`` added (warm start), under each choice of their priors' widths, keeping the fit
+    of highest log-likelihood; std of poses, table and polynomial from the effect graph."""
     t0 = time.perf_counter()
+    choices = augmented.at_prior_widths(effects, log)
     if progress is not None:
-        progress.stage("effects", effect_fit.ROUNDS)
-    ef = effect_fit.fit(log, fit.model, fit.poses, effects, seed=seed, obs_mask=kept(log, fit),
-                        on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
+        progress.stage("effects", effect_fit.ROUNDS * len(choices))
+    fits = [effect_fit.fit(log, fit.model, fit.poses, chosen, seed=seed, obs_mask=kept(log, fit),
+                           on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
+            for chosen in choices]
+    ef = max(fits, key=lambda f: f.log_likelihood if np.isfinite(f.log_likelihood) else -np.inf)
+    its = sum(f.iterations for f in fits)
+    tried = [{"prior_width": {e.name: e.prior_width for e in f.effects if len(e.prior_widths) > 1},
+              "log_likelihood": f.log_likelihood} for f in fits]
     cov_p, cov_t = augmented.marginals(ef.problem, ef.state)
     na, D = ef.problem.n_action, ef.problem.D
     sd = np.sqrt(np.clip(np.diag(cov_t), 0, None))
@@ -64,12 +71,13 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     pose_std = world_std(ef.poses, np.sqrt(np.einsum("kii->ki", cov_p)), cov_p[:, :2, :2])
     model = ef.model.with_(velocity_std=sd[:na].reshape(-1, 3), reading_poly_std=sd[na:na + D],
                            reading_poly_cov=cov_t[na:na + D, na:na + D],
-                           fit={**fit.model.fit, "iterations": fit.model.fit.get("iterations", 0) + ef.iterations,
+                           fit={**fit.model.fit, "iterations": fit.model.fit.get("iterations", 0) + its,
                                 "seconds": round(fit.model.fit.get("seconds", 0) + time.perf_counter() - t0, 3),
                                 "log_likelihood": ef.log_likelihood, "effects_std": effect_std,
+                                **({"prior_widths_tried": tried} if len(fits) > 1 else {}),
                                 **({} if ef.kept_round is None else {"kept_round": ef.kept_round})})
     return Fit(model=model, poses=ef.poses, pose_std=pose_std, cost=fit.cost + ef.cost,
-               stages=fit.stages + ["effects"] * len(ef.cost), iterations=fit.iterations + ef.iterations,
+               stages=fit.stages + ["effects"] * len(ef.cost), iterations=fit.iterations + its,
                converged=fit.converged, log_likelihood=ef.log_likelihood,
                notes={**fit.notes, "base_log_likelihood": fit.log_likelihood, **compared,
                       "hooked_effects": [type(e) for e in ef.effects]})
