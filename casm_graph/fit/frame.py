@@ -14,6 +14,7 @@ import numpy as np
 
 from casm_graph.fit.result import Fit
 from casm_graph.io.log import Log, wrap
+from casm_graph.models.effects.landmark_offset import similar
 
 
 def moved(poses: np.ndarray, std: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -21,8 +22,7 @@ def moved(poses: np.ndarray, std: np.ndarray, g: np.ndarray) -> tuple[np.ndarray
     k = g[3] if len(g) > 3 else 1.0
     c, s = np.cos(g[0]), np.sin(g[0])
     out = np.array(poses, float)
-    out[:, 0] = k * (c * poses[:, 0] - s * poses[:, 1]) + g[1]
-    out[:, 1] = k * (s * poses[:, 0] + c * poses[:, 1]) + g[2]
+    out[:, :2] = similar(g, out[:, :2])
     out[:, 2] = poses[:, 2] + g[0]
     if np.all(np.abs(poses[:, 2]) <= np.pi):             # headings given wrapped stay wrapped
         out[:, 2] = wrap(out[:, 2])

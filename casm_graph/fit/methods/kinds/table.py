@@ -44,10 +44,10 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     """Refit ``fit`` with ``effects`` added (warm start), under each choice of their priors' widths, keeping the fit
     of highest log-likelihood; std of poses, table and polynomial from the effect graph."""
     t0 = time.perf_counter()
-    choices = augmented.at_prior_widths(effects, log)
+    choices, mask = augmented.at_prior_widths(effects, log), kept(log, fit)
     if progress is not None:
         progress.stage("effects", effect_fit.ROUNDS * len(choices))
-    fits = [effect_fit.fit(log, fit.model, fit.poses, chosen, seed=seed, obs_mask=kept(log, fit),
+    fits = [effect_fit.fit(log, fit.model, fit.poses, chosen, seed=seed, obs_mask=mask,
                            on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
             for chosen in choices]
     ef = max(fits, key=lambda f: f.log_likelihood if np.isfinite(f.log_likelihood) else -np.inf)
@@ -67,7 +67,7 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     if ef.log_likelihood < fit.log_likelihood - LIKELIHOOD_DROP and not any(e.noise_only for e in ef.effects):
         # the base's figure holds its own noise levels: the base refitted as the effects were, to compare with
         compared["refit_log_likelihood"] = effect_fit.fit(log, fit.model, fit.poses, [], seed=seed,
-                                                          obs_mask=kept(log, fit)).log_likelihood
+                                                          obs_mask=mask).log_likelihood
     pose_std = world_std(ef.poses, np.sqrt(np.einsum("kii->ki", cov_p)), cov_p[:, :2, :2])
     model = ef.model.with_(velocity_std=sd[:na].reshape(-1, 3), reading_poly_std=sd[na:na + D],
                            reading_poly_cov=cov_t[na:na + D, na:na + D],
