@@ -8,14 +8,14 @@ a model with an effect added never reads worse than the model it started from.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from casm_graph.fit.result import LIKELIHOOD_DROP
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import table as G
-from casm_graph.graph.augmented import begin, estimate_noise, instantiate, theta_from_model
+from casm_graph.graph.augmented import at_prior_widths, begin, estimate_noise, instantiate, theta_from_model
 from casm_graph.graph.problem import Problem, State
 from casm_graph.io.log import Log
 from casm_graph.models.effects import Effect
@@ -38,6 +38,8 @@ class EffectFit:
     cost: list
     kept_round: int | None = None      # the earlier state returned (0: the start) when the last round fell below it
     last_log_likelihood: float | None = None   # ... and where that last round ended
+    tried: list = field(default_factory=list)  # :func:`likeliest`: each prior-width choice's widths, log-likelihood
+                                               # and iterations (empty: a single choice)
 
 
 def describe(effects: list[Effect], problem: Problem, theta: np.ndarray) -> dict:
@@ -87,6 +89,26 @@ def fit(log: Log, model: Model, poses: np.ndarray, effects, theta: np.ndarray | 
         problem = judged(log, model, effects, st.theta, obs_mask, anchor, st)
     model = model.with_(effects=describe(effects, problem, st.theta))
     return EffectFit(model, st.poses, st.theta, effects, problem, st, ll, its, cost, kept, last)
+
+
+def likeliest(log: Log, model: Model, poses: np.ndarray, effects, *args, **kwargs) -> EffectFit:
+    """:func:`fit` under each choice of the effects' prior widths (:func:`~casm_graph.graph.augmented.at_prior_widths`),
+    the fit of highest log-likelihood kept, its ``tried`` listing every choice. A loose prior lets a shape's weakly
+    pinned directions wander into a worse basin, a tight one holds a large effect back: the data choose, in every fit
+    that frees such an effect (a calibration, a diagnosis's candidate and its held-out folds)."""
+    choices = at_prior_widths(effects, log)
+    if len(choices) == 1:
+        return fit(log, model, poses, choices[0], *args, **kwargs)
+    fits = []
+    for chosen in choices:                  # a width ``model`` records for an effect would override the choice
+        widths = {e.name: e.prior_width for e in chosen if len(e.prior_widths) > 1}
+        at = model.with_(effects={n: {**entry, "prior_width": widths[n]} if n in widths else entry
+                                  for n, entry in model.effects.items()})
+        fits.append(fit(log, at, poses, chosen, *args, **kwargs))
+    best = max(fits, key=lambda f: f.log_likelihood if np.isfinite(f.log_likelihood) else -np.inf)
+    best.tried = [{"prior_width": {e.name: e.prior_width for e in f.effects if len(e.prior_widths) > 1},
+                   "log_likelihood": f.log_likelihood, "iterations": f.iterations} for f in fits]
+    return best
 
 
 def judged(log, model, effects, theta, obs_mask, anchor, st: State) -> Problem:

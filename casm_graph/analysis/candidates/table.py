@@ -48,21 +48,22 @@ def heldout_fold(log: Log, model: Model, poses: np.ndarray, effects: list, k: in
     """Fold ``k``'s log-likelihoods of the whole log with the block and of the rest without it; their difference
     is log p(block | rest).
 
-    The model is fitted on the rest; then, with the effects' parameters and the noise levels held at those
-    values, table, polynomial and poses are fitted once with the block and once without. The table and
-    polynomial are the nuisance here: on a six-minute log many actions run only inside one block,
-    and a table learned without it predicts that block so badly (hundreds of nats either way) that
-    the comparison of two models drowned in it. The fit with the block starts from the model's own
-    full-log poses: the training poses drifted over a block without sightings and could stop in another
-    basin (640 nats lower on one of 36 folds of six Aibo effect logs, never more than 0.2 higher:
-    benchmarks/heldout_stability.py --folds); the fit without it is the training problem with effects
-    and noise held, so the training poses are already its optimum. ``effects``: classes or catalog names.
+    The model is fitted on the rest (under each choice of the effects' prior widths, the likelier kept: without a
+    block a loose prior's fit can wander into a worse basin); then, with the effects' parameters and the noise
+    levels held at those values, table, polynomial and poses are fitted once with the block and once without. The
+    table and polynomial are the nuisance here: on a six-minute log many actions run only inside one block, and a
+    table learned without it predicts that block so badly (hundreds of nats either way) that the comparison of two
+    models drowned in it. The fit with the block starts from the model's own full-log poses: the training poses
+    drifted over a block without sightings and could stop in another basin (640 nats lower on one of 36 folds of six
+    Aibo effect logs, never more than 0.2 higher: benchmarks/heldout_stability.py --folds); the fit without it is
+    the training problem with effects and noise held, so the training poses are already its optimum. ``effects``:
+    classes or catalog names.
     """
     effects = [_resolve(e) for e in effects]
     fixed = [held(e) for e in effects]
     its, tol = options.fold_iterations, options.fold_tol
     mask = folds(log, options.folds)[k]
-    tr = effect_fit.fit(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
+    tr = effect_fit.likeliest(log, model, poses, effects, obs_mask=mask, rounds=1, iterations=its, rel_tol=tol)
     with_block, without = (
         effect_fit.fit(log, tr.model, start, fixed, theta=tr.theta, rounds=1, iterations=its,
                        obs_mask=m, fit_noise=False, rel_tol=tol).log_likelihood
@@ -109,8 +110,8 @@ def fit_member(log: Log, refit: "effect_fit.EffectFit", screen: "effect_fit.Effe
                           {}, time.perf_counter() - t0, heldout_skipped=SCREENED, order=order, screened=True),
                 None, None, None)
     model, poses = start if start is not None else (refit.model, refit.poses)
-    f = effect_fit.fit(log, model, poses, refit.effects + [eff], rounds=options.candidate_rounds,
-                       iterations=options.candidate_iterations)
+    f = effect_fit.likeliest(log, model, poses, refit.effects + [eff], rounds=options.candidate_rounds,
+                             iterations=options.candidate_iterations)
     entry = f.model.effects.get(eff.name, {})
     c = Candidate(eff.name, eff.channel, float("nan"), float("nan"), eff.physics, float("nan"),
                   entry, time.perf_counter() - t0, order=order, prediction=predicted_sightings(f.problem, f.state),
@@ -193,8 +194,8 @@ class TableBench(Bench):
             progress.stage("refit model", None)
         self.present_names = set(model.effects)
         self.present = present = [spec(c) for c in of_model(model.effects, extra_effects)]   # as they travel
-        self.fit = effect_fit.fit(log, model, poses, present, rounds=o.candidate_rounds,
-                                  iterations=o.candidate_iterations)
+        self.fit = effect_fit.likeliest(log, model, poses, present, rounds=o.candidate_rounds,
+                                        iterations=o.candidate_iterations)
         self.base = None             # the fit the candidates are scored against: made beside them (:meth:`score`)
         self.problem, self.state, self.poses = self.fit.problem, self.fit.state, self.fit.poses
 
@@ -217,7 +218,7 @@ class TableBench(Bench):
         floor = predicted_floor(self.fit.problem, self.fit.state) if o.screen_share > 0 else None
         *fitted, self.base = parallel(
             [(fit_member, (log, self.fit, self.fit, spec(m), o, floor)) for m in members]
-            + [(effect_fit.fit, (log, self.fit.model, self.fit.poses, self.present, None,
+            + [(effect_fit.likeliest, (log, self.fit.model, self.fit.poses, self.present, None,
                                  o.candidate_rounds, o.candidate_iterations))], self.workers, progress, self.client)
         fitted = [scored(f, self.base.log_likelihood) for f in fitted]
         keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
@@ -253,7 +254,7 @@ class TableBench(Bench):
         *again, self.base = parallel(
             [(fit_member, (self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:]))
              for i in leaders]
-            + [(effect_fit.fit, (self.log, self.base.model, self.base.poses, self.present, None,
+            + [(effect_fit.likeliest, (self.log, self.base.model, self.base.poses, self.present, None,
                                  more.candidate_rounds, o.candidate_iterations))], self.workers, self.progress,
             self.client)
         again = [scored(a, self.base.log_likelihood) for a in again]

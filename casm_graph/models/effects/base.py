@@ -48,10 +48,10 @@ class Effect:
                                             # on continuous commands (empty: the step that ends at the sighting)
     orders: tuple[int, ...] = ()            # a family's complexities, compared by BIC in a diagnosis (empty: one form)
     order: int | None = None                # this class's complexity among ``orders``
-    prior_widths: tuple[float, ...] = (1.0,)  # multiples of ``prior``'s sigma an action-table calibration fits under,
-                                            # keeping the fit of highest likelihood (a loose prior lets many
-                                            # parameters wander where the data hardly pin them, a tight one holds a
-                                            # large effect back)
+    prior_widths: tuple[float, ...] = (1.0,)  # multiples of ``prior``'s sigma every action-table fit freeing it tries
+                                            # (a calibration, a diagnosis's candidate and folds), keeping the fit of
+                                            # highest likelihood (a loose prior lets many parameters wander where the
+                                            # data hardly pin them, a tight one holds a large effect back)
     prior_width: float = 1.0                # the multiple this instance's prior is taken at
 
     def __init__(self, log: Log | None = None, order: int | None = None):

@@ -44,16 +44,12 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
     """Refit ``fit`` with ``effects`` added (warm start), under each choice of their priors' widths, keeping the fit
     of highest log-likelihood; std of poses, table and polynomial from the effect graph."""
     t0 = time.perf_counter()
-    choices, mask = augmented.at_prior_widths(effects, log), kept(log, fit)
+    mask = kept(log, fit)
     if progress is not None:
-        progress.stage("effects", effect_fit.ROUNDS * len(choices))
-    fits = [effect_fit.fit(log, fit.model, fit.poses, chosen, seed=seed, obs_mask=mask,
-                           on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
-            for chosen in choices]
-    ef = max(fits, key=lambda f: f.log_likelihood if np.isfinite(f.log_likelihood) else -np.inf)
-    its = sum(f.iterations for f in fits)
-    tried = [{"prior_width": {e.name: e.prior_width for e in f.effects if len(e.prior_widths) > 1},
-              "log_likelihood": f.log_likelihood} for f in fits]
+        progress.stage("effects", effect_fit.ROUNDS * len(augmented.at_prior_widths(effects, log)))
+    ef = effect_fit.likeliest(log, fit.model, fit.poses, effects, seed=seed, obs_mask=mask,
+                              on_iteration=(lambda c: progress.step(0, cost=c)) if progress is not None else None)
+    its = sum(t["iterations"] for t in ef.tried) if ef.tried else ef.iterations
     cov_p, cov_t = augmented.marginals(ef.problem, ef.state)
     na, D = ef.problem.n_action, ef.problem.D
     sd = np.sqrt(np.clip(np.diag(cov_t), 0, None))
@@ -74,7 +70,7 @@ def with_effects(log: Log, fit: Fit, effects, seed: int = 0, progress: Progress 
                            fit={**fit.model.fit, "iterations": fit.model.fit.get("iterations", 0) + its,
                                 "seconds": round(fit.model.fit.get("seconds", 0) + time.perf_counter() - t0, 3),
                                 "log_likelihood": ef.log_likelihood, "effects_std": effect_std,
-                                **({"prior_widths_tried": tried} if len(fits) > 1 else {}),
+                                **({"prior_widths_tried": ef.tried} if ef.tried else {}),
                                 **({} if ef.kept_round is None else {"kept_round": ef.kept_round})})
     return Fit(model=model, poses=ef.poses, pose_std=pose_std, cost=fit.cost + ef.cost,
                stages=fit.stages + ["effects"] * len(ef.cost), iterations=fit.iterations + its,
