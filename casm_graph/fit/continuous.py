@@ -221,14 +221,9 @@ def optimise_rounds(log: Log, lay: Layout, model: Model, poses: np.ndarray, roun
         st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick,
                               freeze_parameters=freeze)
         its += h.iterations
-        turn = problem.motion_residual(st)[:, 2]
-        runs = turns.spins(turn)
-        if runs:                 # a whole turn wound into a few knots: unwound, kept when the graph agrees
-            tried, h2 = least_squares(problem, replace(st, poses=turns.unwind(st.poses, turn, runs)),
-                                      max_iterations=iterations, on_iteration=tick, freeze_parameters=freeze)
-            its += h2.iterations
-            if h2.cost[-1] < h.cost[-1]:      # each history ends at its state's cost
-                st, h = tried, h2
+        st, h, more = turns.unspun(problem, st, h, partial(least_squares, problem, max_iterations=iterations,
+                                                          on_iteration=tick, freeze_parameters=freeze))
+        its += more
         poses = st.poses
         model = problem.with_state(model, st)
         if r < rounds - 1 or last_noise:

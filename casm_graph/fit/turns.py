@@ -8,6 +8,9 @@ segment's own sightings decide which alias the robot really turned at.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Callable
+
 import numpy as np
 
 import factors
@@ -160,3 +163,16 @@ def unwind(poses: np.ndarray, turn_residual: np.ndarray, runs: list[tuple[int, i
         share = np.arange(1, b - a) / (b - a)
         out[a + 1:b, 2] = wrap(poses[a + 1:b, 2] - np.cumsum(e)[:-1] + share * wrap(np.sum(e)))
     return out
+
+
+def unspun(problem, st, history, settle: Callable) -> tuple:
+    """``st`` (its least-squares ``history``) or, where its turn residuals hold a spin (:func:`spins`: a whole turn
+    wound into a few knots, as a start can put one across a gap in the sightings), the state unwound and settled by
+    ``settle(state) -> (state, history)``, kept when it ends at the lower cost. Returns (state, history, iterations
+    spent on the unwound state)."""
+    turn = problem.motion_residual(st)[:, 2]
+    runs = spins(turn)
+    if not runs:
+        return st, history, 0
+    tried, again = settle(replace(st, poses=unwind(st.poses, turn, runs)))
+    return (tried, again, again.iterations) if again.cost[-1] < history.cost[-1] else (st, history, again.iterations)

@@ -5,7 +5,8 @@
 2. A coarse graph (a pose every ``stride`` steps) is optimised in rounds; after each round every
    noise level is re-estimated from its residuals with the degrees-of-freedom correction of
    :mod:`casm_graph.graph.noise`, so the motion noise starts at the paper's loose value and tightens as
-   the fit earns it.
+   the fit earns it. A whole turn the start wound into a few knots (across a gap in the sightings, say) is
+   unwound after each round's least squares and kept when the graph agrees (:func:`casm_graph.fit.turns.unspun`).
 3. Sightings the coarse fit cannot explain by any Gaussian noise are pruned
    (:mod:`casm_graph.fit.outliers`, as the paper prunes in its first EM iteration); the coarse
    trajectory is filled in step by step and the full graph (a pose every step, as in the paper)
@@ -18,6 +19,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -27,6 +29,7 @@ from casm_graph.fit.outliers import set_aside
 from casm_graph.fit.residuals import distances, observation
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
+from casm_graph.fit import turns
 from casm_graph.fit.turns import realias
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import estimate_noise
@@ -83,6 +86,8 @@ def mixture_weights(log: Log, poses_at_obs: np.ndarray, model: Model, fraction: 
 
 
 def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress, weight=None):
+    """``iterations`` LM steps on ``lay``'s graph from ``poses``, a spin unwound (:func:`casm_graph.fit.turns.unspun`).
+    Returns the problem, its state, the model there, the last history and the LM iterations spent."""
     problem = Problem(log, model, lay=lay, weight=weight, anchor=G.heading_anchor(log, poses))
 
     def tick(c):
@@ -91,7 +96,9 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress,
         progress.step(0, cost=c)
 
     st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick)
-    return problem, st, problem.with_state(model, st), h
+    st, spun, more = turns.unspun(problem, st, h, partial(least_squares, problem, max_iterations=iterations,
+                                                         on_iteration=tick))
+    return problem, st, problem.with_state(model, st), spun, h.iterations + more
 
 
 @dataclass
@@ -119,7 +126,7 @@ def realias_if_better(log: Log, lay: G.Layout, model: Model, poses: np.ndarray, 
         return model, poses, []
 
     def settle(m, p):
-        _, st, settled, h = _optimise(log, lay, m, p, iterations, [], [], "realias", Progress(), weight)
+        _, st, settled, h, _ = _optimise(log, lay, m, p, iterations, [], [], "realias", Progress(), weight)
         return h.cost[-1], settled, st.poses
 
     kept, picked = settle(model, poses), settle(new_model, new_poses)
@@ -150,9 +157,9 @@ def coarse_start(log: Log, start: Model, seed: int = 0, progress: Progress | Non
     for r in range(o.coarse_rounds):
         if mixture:
             weight, fraction = mixture_weights(log, poses[lay.obs_knot], model, fraction)
-        problem, st, model, h = _optimise(log, lay, model, poses, o.coarse_iterations, cost, stages,
-                                          "coarse", progress, weight)
-        iterations += h.iterations
+        problem, st, model, h, its = _optimise(log, lay, model, poses, o.coarse_iterations, cost, stages,
+                                               "coarse", progress, weight)
+        iterations += its
         poses = st.poses
         model = estimate_noise(problem, st, model, seed=seed + r, relax=o.coarse_relax)[0]
         if r in o.realias_after and bearings:    # ranges only: the start's links already chose among the aliases
@@ -208,9 +215,9 @@ def _fit(log: Log, start: Model, seed: int, progress: Progress, marginals: bool,
         for r in range(o.full_rounds):
             if mixture:
                 weight, fraction = mixture_weights(log, poses[log.obs_step], model, fraction)
-            problem, st, model, h = _optimise(log, full, model, poses, o.full_iterations, cost, stages,
-                                              "full", progress, weight)
-            iterations += h.iterations
+            problem, st, model, h, its = _optimise(log, full, model, poses, o.full_iterations, cost, stages,
+                                                   "full", progress, weight)
+            iterations += its
             poses = st.poses
             if r < o.full_rounds - 1:
                 model = estimate_noise(problem, st, model, seed=seed + 100 + r)[0]
