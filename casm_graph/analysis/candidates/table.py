@@ -219,7 +219,8 @@ class TableBench(Bench):
         *fitted, self.base = parallel(
             [(fit_member, (log, self.fit, self.fit, spec(m), o, floor)) for m in members]
             + [(effect_fit.likeliest, (log, self.fit.model, self.fit.poses, self.present, None,
-                                 o.candidate_rounds, o.candidate_iterations))], self.workers, progress, self.client)
+                                       o.candidate_rounds, o.candidate_iterations))], self.workers, progress,
+            self.client)
         fitted = [scored(f, self.base.log_likelihood) for f in fitted]
         keep = best_of_family([c for c, _, _ in fitted])      # a family's members compete; BIC keeps one
         fitted, members = [fitted[i] for i in keep], [members[i] for i in keep]
@@ -255,7 +256,7 @@ class TableBench(Bench):
             [(fit_member, (self.log, self.fit, self.base, spec(members[i]), more, None, fitted[i][1:]))
              for i in leaders]
             + [(effect_fit.likeliest, (self.log, self.base.model, self.base.poses, self.present, None,
-                                 more.candidate_rounds, o.candidate_iterations))], self.workers, self.progress,
+                                       more.candidate_rounds, o.candidate_iterations))], self.workers, self.progress,
             self.client)
         again = [scored(a, self.base.log_likelihood) for a in again]
         for i, (c, m, p) in zip(leaders, again):

@@ -30,7 +30,6 @@ from casm_graph.fit.residuals import distances, observation
 from casm_graph.fit.sensor_degree import SensorCurveOptions, better_curve, choose_curve, suspect
 from casm_graph.fit.solve import RIDGE_WARNING, chain_marginals, least_squares, world_std
 from casm_graph.fit import turns
-from casm_graph.fit.turns import realias
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import estimate_noise
 from casm_graph.graph.problem import Problem
@@ -97,7 +96,7 @@ def _optimise(log, lay, model, poses, iterations, cost, stages, label, progress,
 
     st, h = least_squares(problem, problem.state(poses, model), max_iterations=iterations, on_iteration=tick)
     st, spun, more = turns.unspun(problem, st, h, partial(least_squares, problem, max_iterations=iterations,
-                                                         on_iteration=tick))
+                                                         on_iteration=tick), span=lay.seg_steps * lay.seg_dt)
     return problem, st, problem.with_state(model, st), spun, h.iterations + more
 
 
@@ -121,7 +120,7 @@ def realias_if_better(log: Log, lay: G.Layout, model: Model, poses: np.ndarray, 
     and the one without, each settled by ``iterations`` LM steps under the same noise levels, the lower cost wins
     (the aliases are scored on each run's own dead-reckoned sightings, which a short log can fool: a one-minute
     Aibo log took a wrong alias and ended 0.68 m off)."""
-    new_model, new_poses, changed = realias(log, lay, model, poses)
+    new_model, new_poses, changed = turns.realias(log, lay, model, poses)
     if not changed:
         return model, poses, []
 
