@@ -99,15 +99,16 @@ def likeliest(log: Log, model: Model, poses: np.ndarray, effects, *args, **kwarg
     choices = at_prior_widths(effects, log)
     if len(choices) == 1:
         return fit(log, model, poses, choices[0], *args, **kwargs)
-    fits = []
+    fits, tried = [], []
     for chosen in choices:                  # a width ``model`` records for an effect would override the choice
         widths = {e.name: e.prior_width for e in chosen if len(e.prior_widths) > 1}
         at = model.with_(effects={n: {**entry, "prior_width": widths[n]} if n in widths else entry
                                   for n, entry in model.effects.items()})
-        fits.append(fit(log, at, poses, chosen, *args, **kwargs))
+        f = fit(log, at, poses, chosen, *args, **kwargs)
+        fits.append(f)
+        tried.append({"prior_width": widths, "log_likelihood": f.log_likelihood, "iterations": f.iterations})
     best = max(fits, key=lambda f: f.log_likelihood if np.isfinite(f.log_likelihood) else -np.inf)
-    best.tried = [{"prior_width": {e.name: e.prior_width for e in f.effects if len(e.prior_widths) > 1},
-                   "log_likelihood": f.log_likelihood, "iterations": f.iterations} for f in fits]
+    best.tried = tried
     return best
 
 
