@@ -33,7 +33,7 @@ from casm_graph.analysis.groundtruth import trajectory_rms  # noqa: E402
 from casm_graph.fit.continuous import check_effects       # noqa: E402
 from casm_graph.io.log import LogError                    # noqa: E402
 from casm_graph.models.effects import get as get_effect   # noqa: E402
-from tests.worlds import generate_world                    # noqa: E402
+from tests.worlds import generate_world, traces            # noqa: E402
 
 CATALOG = {e["name"] for e in cg.catalog()}
 UNCATALOGED = {"heading_speed": "heading", "position_drift_speed": "x", "time_speed": "time",
@@ -73,7 +73,8 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
                "lookalikes": [g["effects"] for g in d1.lookalikes],
                "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
                                "order": c.order} for c in d1.candidates[:4]],
-               "error_before": trajectory_rms(base.trajectory, log.truth), "added": add}
+               "error_before": trajectory_rms(base.trajectory, log.truth), "added": add,
+               "trace": traces.check(d1, effect, truth.get("geometry") or truth.get("effect") or {})}
         if add is not None:
             fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis, step_heading=step_heading)
             d2 = cg.diagnose(log, fixed, before=d1, options=options)
@@ -112,6 +113,23 @@ def print_table(rows: list[dict]) -> None:
               f"{none_after}/{len(after)} | {err} |")
 
 
+def print_traces(rows: list[dict]) -> None:
+    """Per hidden catalog effect: how often the report opens with its view (first, or among the verdict's look-alikes'
+    views) and how often that view shows it (tests/worlds/traces.py)."""
+    groups = defaultdict(list)
+    for r in rows:
+        if (r.get("trace") or {}).get("expected"):
+            groups[(r["kind"], r["effect"])].append(r["trace"])
+    if not groups:
+        return
+    print("\n| kind | hidden effect | its view | first panel | among the opening views | the view shows it |")
+    print("|---|---|---|---:|---:|---:|")
+    for (kind, eff), ts in sorted(groups.items()):
+        n = len(ts)
+        print(f"| {kind} | {eff} | {ts[0]['expected']} | {sum(t['position'] == 0 for t in ts)}/{n} | "
+              f"{sum(t['position'] is not None for t in ts)}/{n} | {sum(bool(t['shown']) for t in ts)}/{n} |")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--kinds", nargs="+", default=["table", "continuous"])
@@ -128,7 +146,9 @@ def main():
     ap.add_argument("--table", nargs="+", metavar="JSONL", help="only print the table of earlier runs' JSON lines")
     args = ap.parse_args()
     if args.table:
-        print_table([json.loads(line) for p in args.table for line in open(p) if line.strip()])
+        rows = [json.loads(line) for p in args.table for line in open(p) if line.strip()]
+        print_table(rows)
+        print_traces(rows)
         return
     rows = []
     with open(args.out, "a") as f:
@@ -146,6 +166,7 @@ def main():
                           + (f", after adding {row['added']}: {row.get('verdict_after')}" if row.get("added") else "")
                           + f" ({row['seconds']:.0f} s)", flush=True)
     print_table(rows)
+    print_traces(rows)
 
 
 if __name__ == "__main__":

@@ -378,6 +378,9 @@ def main(argv=None) -> int:
     except LogError as exc:
         print(f"casm-graph: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:   # the reader of our output left (``| head``): nothing to say, and no one to say it to
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except Exception as exc:  # any other failure: one line, status 1
         first = (str(exc).strip().splitlines() or [""])[0]       # one line, even for GTSAM's many-line messages
         print(f"casm-graph: failed: {type(exc).__name__}: {first}", file=sys.stderr)

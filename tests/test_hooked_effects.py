@@ -18,6 +18,7 @@ from casm_graph.graph.problem import Problem, State
 from casm_graph.models.effects import get
 from casm_graph.models.effects.proposal import proposal_effect
 from casm_graph.sim.floor import FloorConfig, simulate
+from tests.worlds import traces
 from tests.worlds.independent_world import generate
 
 from .conftest import FULL, patch_contrast, position_rms
@@ -158,6 +159,8 @@ def test_a_battery_fade_on_a_continuous_log_is_named_fitted_and_explained(tmp_pa
                                              candidates=candidates)
     assert {c.effect for c in diag.candidates} <= set(candidates or {c.effect for c in diag.candidates})
     assert diag.verdict == "battery_fade", diag.verdict
+    trace = traces.check(diag, "battery_fade", {})            # the report opens with the motion achieved over time
+    assert trace["position"] == 0 and trace["shown"], trace
     fade = next(c for c in diag.candidates if c.effect == "battery_fade")
     assert fade.delta_bic < -100
     m, e = log.pose_times[-1] / 60.0, fade.parameters            # the member BIC keeps: speed lost over the log
@@ -217,6 +220,8 @@ def test_a_second_order_lag_on_a_continuous_log_is_named_fitted_and_explained(tm
     candidates = None if FULL else ["actuator_lag", "camera_latency"]
     truth, log, cal, diag = _diagnosed_world(tmp_path, "actuator_lag", minutes=2, seed=1, candidates=candidates)
     assert diag.verdict == "actuator_lag", diag.verdict
+    trace = traces.check(diag, "actuator_lag", {})
+    assert trace["position"] == 0 and trace["shown"], trace
     best = diag.candidates[0]
     assert best.effect == "actuator_lag" and best.parameters.get("order") == 2, best.parameters
     assert best.parameters["tau"] == pytest.approx(2 * truth["strength"], rel=0.15)

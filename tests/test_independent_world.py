@@ -17,6 +17,7 @@ import casm_graph as cg
 from casm_graph.models.model import Model
 
 from .conftest import FULL, patch_contrast, position_rms
+from .worlds import traces
 from .worlds.independent_world import generate
 
 PAPER = np.array([0.02306, 0.01834, 0.086])
@@ -286,6 +287,8 @@ def test_a_carpet_anywhere_on_the_floor_is_named_and_mapped(tmp_path):
     base = cg.calibrate(log, seed=1)
     diag = cg.diagnose(log, base, candidates=["surface_friction", "battery_fade"])
     assert diag.verdict == "surface_friction", diag.verdict
+    trace = traces.check(diag, "surface_friction", truth["geometry"])     # the report opens with the floor map
+    assert trace["position"] == 0 and trace["shown"], trace
     cal = cg.calibrate(log, effects=["surface_friction"], seed=1)
     assert patch_contrast(cal.model.effects["surface_friction"], log, truth) > 0.5 * truth["strength"]
     assert position_rms(cal, log) < 0.95 * position_rms(base, log), (position_rms(base, log), position_rms(cal, log))
@@ -346,6 +349,8 @@ def test_a_camera_latency_and_the_lag_are_one_lookalike_group(tmp_path):
     assert two.verdict == "actuator_lag", [(c.effect, c.delta_bic) for c in two.candidates]
     assert [g["effects"] for g in diag.lookalikes] == [[diag.verdict, ({"actuator_lag", "camera_latency"}
                                                                        - {diag.verdict}).pop()]]
+    trace = traces.check(diag, "camera_latency", {})          # one view for both: the path trailing the commands
+    assert trace["position"] == 0 and trace["lead_effects"] == ["camera_latency", "actuator_lag"] and trace["shown"]
     text = " ".join(diag.words)
     assert "faster than the lag" in text and "commands steady" in text       # what would separate them
 
@@ -358,6 +363,8 @@ def test_a_strong_range_dependent_noise_is_named(tmp_path):
     log = cg.load_log(tmp_path / "log")
     diag = cg.diagnose(log, cg.calibrate(log), candidates=["range_dependent_noise", "battery_fade"])
     assert diag.verdict == "range_dependent_noise" and diag.candidates[0].delta_bic < -300
+    trace = traces.check(diag, "range_dependent_noise", {})
+    assert trace["position"] == 0 and trace["measure"] == "reading vs distance" and trace["shown"], trace
 
 
 @pytest.mark.science
@@ -377,6 +384,8 @@ def test_false_detections_on_continuous_commands_named_and_modelled(tmp_path):
     assert diag.verdict == "false_detections", [(c.effect, c.delta_bic) for c in diag.candidates]
     top = diag.candidates[0]
     assert top.heldout_nll_drop > 0
+    trace = traces.check(diag, "false_detections", {})        # the report opens with the sightings' tails
+    assert trace["position"] == 0 and trace["shown"], trace
     fixed = cg.calibrate(log, effects=["false_detections"], seed=7)
     share = truth["stats"]["n_false"] / truth["stats"]["n_observations"]
     assert fixed.model.effects["false_detections"]["fraction"] == pytest.approx(share, rel=0.2)
@@ -456,6 +465,35 @@ def test_a_spin_counts_its_segments_by_their_turn_per_unit_time():
     assert spins(e, span=span) == [(1, 7)]
     assert spins(e[[0, 1, 3, 4, 6, 7]], span=np.full(6, 10.0)) == spins(e[[0, 1, 3, 4, 6, 7]]) == [(1, 5)]
     assert spins(np.array([0.1, 0.3, 0.1]), span=np.array([10, 2, 10.0])) == []
+
+
+def test_a_whole_turn_between_two_sighted_knots_is_a_spin_however_slowly_wound():
+    """Between sighted knots with none between, the motion alone holds the path: a whole turn beyond the model there
+    is a spin though no segment turns 0.5 rad; the same turn where sightings hold the path is not."""
+    from casm_graph.fit.turns import spins, unsighted
+    e = np.concatenate([np.zeros(5), np.full(20, -0.25), np.zeros(5)])
+    sighted = np.ones(31, bool)
+    sighted[6:25] = False
+    assert unsighted(sighted) == [(5, 25)]
+    assert spins(e) == [] and spins(e, sighted=np.ones(31, bool)) == []
+    assert spins(e, sighted=sighted) == [(5, 25)]
+    assert spins(e * 0.5, sighted=sighted) == []          # half a turn: the nearest alias is the one it has
+
+
+@pytest.mark.science
+def test_a_whole_turn_wound_slowly_across_a_gap_in_the_sightings_is_unwound(tmp_path):
+    """Table world, seed 18 (a second-order lag, 0.23 s per stage), six minutes: the start wound a whole turn into
+    the 13 s without a sighting after t = 221 s, 0.04 rad a step (under the 0.5 rad a coarse segment of a spin turns
+    beyond the model), and the path kept it (heading 3.1 rad off the truth's at t = 229 s, the position 0.55 m off
+    at t = 225 s; unwound 0.23 m, thirteen seconds dead-reckoned without the lag). Between two sighted knots only
+    the motion holds the path, so a whole turn beyond the model there is unwound."""
+    generate(tmp_path / "log", kind="table", minutes=6, seed=18, effect="actuator_lag", min_range=0.8)
+    log = cg.load_log(tmp_path / "log")
+    cal = cg.calibrate(log, seed=18)
+    off = np.angle(np.exp(1j * (cal.trajectory["theta"] - log.truth[:, 3])))
+    assert np.max(np.abs(off)) < 1.0
+    gap = (log.truth[:, 0] > 221) & (log.truth[:, 0] < 234)
+    assert np.max(np.hypot(cal.trajectory["x"] - log.truth[:, 1], cal.trajectory["y"] - log.truth[:, 2])[gap]) < 0.3
 
 
 @pytest.mark.science

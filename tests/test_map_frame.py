@@ -13,7 +13,7 @@ from casm_graph.graph import augmented as AU
 from casm_graph.graph.problem import Problem
 from casm_graph.models.effects.landmark_offset import LandmarkOffset
 from casm_graph.models.model import Model, paper_start
-from tests.worlds import generate_world
+from tests.worlds import generate_world, traces
 
 
 class Map:
@@ -210,7 +210,7 @@ def test_a_diagnosis_holds_its_folds_to_the_likelier_width(tmp_path):
     """Independent table world, seed 6 (a landmark 0.18 m off): in-sample both widths fit alike (delta BIC -58), but
     one held-out fold's fit without its block wandered under the loose prior alone (held out -47.9 nats: verdict
     none). Each fold's fit tries both widths as the calibration does, and the moved landmark is named."""
-    generate_world("table", tmp_path / "log", 6.0, 6, "landmark_offset", min_range=0.8)
+    truth = generate_world("table", tmp_path / "log", 6.0, 6, "landmark_offset", min_range=0.8)
     log = cg.load_log(tmp_path / "log")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -218,6 +218,8 @@ def test_a_diagnosis_holds_its_folds_to_the_likelier_width(tmp_path):
     c = next(c for c in d.candidates if c.effect == "landmark_offset")
     assert c.delta_bic < -20 and c.heldout_nll_drop > 20
     assert d.verdict == "landmark_offset"
+    trace = traces.check(d, "landmark_offset", truth["geometry"])    # the report opens with the landmarks' sightings
+    assert trace["position"] == 0 and trace["shown"], trace
 
 
 def test_prior_widths_scale_the_prior_and_only_where_a_class_offers_them():

@@ -22,7 +22,7 @@ from casm_graph.models.command_model import CommandModel, for_commands
 from casm_graph.models.effects import REGISTRY
 from casm_graph.models.model import Model
 from tests.conftest import slow_on_patch
-from tests.worlds import omni_world
+from tests.worlds import omni_world, traces
 
 
 def map_errors(model: Model, log, world: dict) -> np.ndarray:
@@ -112,6 +112,8 @@ def test_a_hidden_actuator_lag_on_an_omnidirectional_robot_is_found_and_fixed(tm
     named = {d1.verdict} | {e for g in d1.lookalikes for e in g["effects"]}
     print(d1.verdict, d1.lookalikes, [(c.effect, round(c.delta_bic)) for c in d1.candidates[:3]])
     assert "actuator_lag" in named
+    trace = traces.check(d1, "actuator_lag", {})       # the report opens with the motion trailing the commands
+    assert trace["position"] == 0 and trace["shown"], trace
     fixed = cg.calibrate(log, effects=["actuator_lag"], seed=1)
     d2 = cg.diagnose(log, fixed, before=d1)
     assert d2.verdict == "none", d2.verdict
@@ -185,6 +187,8 @@ def test_a_carpet_is_named_in_the_form_a_calibration_fits_best_and_its_turn_shar
     diag = cg.diagnose(log, base, candidates=["surface_friction"])
     (c,) = diag.candidates
     assert diag.verdict == "surface_friction" and c.order == 0, (c.orders, c.confirmed)
+    trace = traces.check(diag, "surface_friction", world["effect"])
+    assert trace["position"] == 0 and trace["shown"], trace
     assert min(c.orders.values()) < c.orders[0] and c.confirmed[0] == max(c.confirmed.values()), c
     fixed = cg.calibrate(log, effects=[diag.to_add()], seed=1)
     e = fixed.model.effects["surface_friction"]

@@ -144,18 +144,30 @@ def realias(log: Log, lay: Layout, model: Model, poses: np.ndarray) -> tuple[Mod
     return model.with_(velocities=vel), poses, changed
 
 
-def spins(turn_residual: np.ndarray, min_turn: float = SPIN_TURN, span: np.ndarray | None = None
-          ) -> list[tuple[int, int]]:
+def spins(turn_residual: np.ndarray, min_turn: float = SPIN_TURN, span: np.ndarray | None = None,
+          sighted: np.ndarray | None = None) -> list[tuple[int, int]]:
     """(first knot, last knot) of each spin: consecutive segments that each turn more than ``min_turn`` beyond the
     model and together a whole turn or more, which no local step undoes (each segment's wrapped residual would
     first have to grow). ``span`` (each segment's length) where segments differ: a segment then counts by its turn
     per unit length against ``min_turn`` per median segment, so that the short segment a knot at an action change
-    cuts out of a spin does not break it."""
+    cuts out of a spin does not break it. ``sighted`` (each knot: whether a sighting attaches to it): the path
+    between two sighted knots with none between is held by the motion alone, so a whole turn beyond the model there
+    is a spin however slowly it was wound (a start wound one over 13 s without sightings, 0.04 rad a step)."""
     turn = np.abs(turn_residual)
     big = turn > min_turn if span is None else turn / span > min_turn / np.median(span)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], big.astype(int), [0]])))
     runs = [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
-    return [(a, b) for a, b in runs if abs(np.sum(turn_residual[a:b])) > np.pi]
+    runs = [(a, b) for a, b in runs if abs(np.sum(turn_residual[a:b])) > np.pi]
+    for a, b in unsighted(sighted) if sighted is not None else ():
+        if abs(np.sum(turn_residual[a:b])) > np.pi and not any(a < d and c < b for c, d in runs):
+            runs.append((a, b))
+    return sorted(runs)
+
+
+def unsighted(sighted: np.ndarray) -> list[tuple[int, int]]:
+    """(sighted knot, next sighted knot) around each run of knots without a sighting (knots: ``sighted`` flags)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], (~np.asarray(sighted, bool)).astype(int), [0]])))
+    return [(max(int(a) - 1, 0), min(int(b), len(sighted) - 1)) for a, b in zip(edges[::2], edges[1::2])]
 
 
 def unwind(poses: np.ndarray, turn_residual: np.ndarray, runs: list[tuple[int, int]]) -> np.ndarray:
@@ -171,11 +183,11 @@ def unwind(poses: np.ndarray, turn_residual: np.ndarray, runs: list[tuple[int, i
 
 def unspun(problem, st, history, settle: Callable, span: np.ndarray | None = None) -> tuple:
     """``st`` (its least-squares ``history``) or, where its turn residuals hold a spin (:func:`spins`, ``span`` each
-    segment's length: a whole turn wound into a few knots, as a start can put one across a gap in the sightings),
+    segment's length: a whole turn wound into a few knots, or across a gap in the sightings, as a start can put one),
     the state unwound and settled by ``settle(state) -> (state, history)``, kept when it ends at the lower cost.
     Returns (state, history, iterations spent on the unwound state)."""
     turn = problem.motion_residual(st)[:, 2]
-    runs = spins(turn, span=span)
+    runs = spins(turn, span=span, sighted=np.bincount(problem.lay.obs_knot, minlength=problem.lay.n_poses) > 0)
     if not runs:
         return st, history, 0
     tried, again = settle(replace(st, poses=unwind(st.poses, turn, runs)))

@@ -24,6 +24,8 @@ from casm_graph.models.effects.regional_motion_noise import determined, from_ent
 from casm_graph.models.effects.surface_friction import PATCH, SurfaceFriction
 from casm_graph.models.model import Model
 from casm_graph.models.velocity_table import VelocityTable
+from casm_graph.analysis.trace_measures import landmark_means, moving, speed_share, speed_trend, tail_share
+from casm_graph.report.signature import View, lead, ranked_pairs
 from casm_graph.sim.aibo import true_reading
 
 STYLE = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -399,11 +401,10 @@ def _binned(x, y, bins=12):
     return c, m, 2 * np.sqrt(np.maximum(v, 0) / n[ok])
 
 
-def covariate_panels(diag, top: int = 6):
-    """The strongest residual-covariate dependences: residuals, binned means and their 2-SE bars."""
-    pairs = [(ch, c) for ch, r in diag.channels.items() for c in r["covariates"]]
-    pairs.sort(key=lambda p: -p[1]["strength"])
-    pairs = pairs[:top]
+def covariate_panels(diag, top: int = 6, pairs=None):
+    """Residual-covariate dependences (``pairs`` of channel and test, else the ``top`` strongest): residuals, binned
+    means and their 2-SE bars."""
+    pairs = list(ranked_pairs(diag, top=top) if pairs is None else pairs)
     fig, axes = subplots(int(np.ceil(len(pairs) / 3)) or 1, 3, figsize=(13, 3.4 * max(1, int(np.ceil(len(pairs) / 3)))),
                              squeeze=False)
     rng = np.random.default_rng(0)
@@ -443,20 +444,102 @@ def field_heatmap(diag):
     return fig
 
 
+def _landmark_axis(ax, diag) -> None:
+    """Mean sighting residual per landmark, each channel's, with 2-SE bars."""
+    for k, ch in enumerate(c for c in ("reading", "bearing") if c in diag.residuals):
+        ids, m, se = landmark_means(diag, ch)
+        ax.errorbar(np.arange(len(ids)) + 0.15 * k, m, 2 * se, fmt="o", label=ch)
+        ax.set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids])
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set(xlabel="landmark", ylabel="mean residual (sigmas)", title="per landmark")
+    ax.legend(fontsize=8)
+
+
+def landmark_figure(diag):
+    """The sightings' mean residual per landmark: a misplaced landmark's stand off zero, the others' not."""
+    fig, ax = subplots(figsize=(6.5, 3.4))
+    _landmark_axis(ax, diag)
+    fig.tight_layout()
+    return fig
+
+
+def tails_figure(diag):
+    """The sightings' whitened residuals against the normal distribution the model assumes (log counts): sightings
+    that follow no landmark sit in the tails, many sigmas out."""
+    chans = [c for c in ("reading", "bearing") if c in diag.residuals]
+    fig, axes = subplots(1, len(chans), figsize=(6.5 * len(chans), 3.4), squeeze=False)
+    for ax, ch in zip(axes[0], chans):
+        r = diag.residuals[ch].residual
+        r = r[np.isfinite(r)]
+        edges = np.linspace(-8, 8, 65)
+        counts, _ = np.histogram(np.clip(r, -8, 8), edges)
+        mid = 0.5 * (edges[:-1] + edges[1:])
+        ax.bar(mid, counts, width=edges[1] - edges[0], color="0.6", label="residuals (beyond 8 in the end bins)")
+        normal = len(r) * (edges[1] - edges[0]) * np.exp(-0.5 * mid ** 2) / np.sqrt(2 * np.pi)
+        ax.plot(mid, normal, color="C3", lw=1.5, label="normal")
+        ax.set_yscale("log")
+        ax.set_ylim(0.5, None)
+        ax.set(xlabel=f"{ch} residual (sigmas)", ylabel="sightings",
+               title=f"{ch}: {100 * tail_share(r):.2f} % beyond 4 sigmas (normal: 0.006 %)")
+        ax.legend(fontsize=8)
+    if diag.set_aside:
+        fig.suptitle(f"{diag.set_aside} further sighting(s) set aside before the fit as gross outliers", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def speed_figure(diag, bins: int = 12):
+    """The share of its modelled motion the robot achieved over time, per motion axis, with 2-SE bars: a fading
+    battery's runs fall short more and more."""
+    chans = moving(diag)
+    fig, ax = subplots(figsize=(13, 3.4))
+    for k, ch in enumerate(chans):
+        d = diag.residuals[ch]
+        edges = np.linspace(np.nanmin(d.time), np.nanmax(d.time) + 1e-9, bins + 1)
+        share, se = speed_share(d, edges)
+        mid = 0.5 * (edges[:-1] + edges[1:]) / 60
+        rate, t = speed_trend(d)
+        ax.errorbar(mid + 0.05 * (k - 1) * (mid[1] - mid[0]), 100 * share, 200 * se, fmt="o-", ms=3, capsize=2,
+                    label=f"{ch}: {100 * rate:+.2f} % per minute (t {t:.1f})")
+    ax.axhline(100, color="k", lw=0.5)
+    ax.set(xlabel="time (min)", ylabel="% of the modelled motion achieved",
+           title="the motion achieved against the model's, over time (a fade: falling)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+VIEW_WORDS = {
+    "covariates": "the residuals against what it explains, strongest dependence first (binned means with 2-SE bars)",
+    "correlation": "the motion residuals against the change of the model's velocity over the second before and after, "
+                   "and the sightings' residual autocorrelation (outside the grey band: more than white residuals show)",
+    "field": "the motion residuals by where on the field the step began (red: the robot went further than the "
+             "model; blue: less)",
+    "landmarks": "the sightings' mean residual per landmark (landmarks whose sightings stand off zero: the map is "
+                 "wrong somewhere; the path takes part of one landmark's move, which then shows on its neighbours "
+                 "too, so the fit, not this panel, says which one moved)",
+    "tails": "the sightings' residuals against the normal distribution the model assumes (log scale)",
+    "speed": "the share of its modelled motion the robot achieved, over time"}
+
+
+def view_figure(diag, view: View):
+    """The figure of one signature view (:mod:`casm_graph.report.signature`)."""
+    return {"covariates": lambda: covariate_panels(diag, pairs=view.pairs),
+            "correlation": lambda: correlation_figure(diag), "field": lambda: field_heatmap(diag),
+            "landmarks": lambda: landmark_figure(diag), "tails": lambda: tails_figure(diag),
+            "speed": lambda: speed_figure(diag)}[view.kind]()
+
+
+def _trace_html(diag, views: list[View]) -> str:
+    """The verdict's and its look-alikes' views, each with what to look for."""
+    return "".join(f"<p><b>{html.escape(', '.join(v.effects))}</b>: {VIEW_WORDS[v.kind]}.</p>"
+                   f"{png(view_figure(diag, v))}" for v in views)
+
+
 def group_panels(diag):
     """Mean residual per landmark (sensor channels) and per action (motion channels), with 2-SE bars."""
     fig, axes = subplots(1, 2, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1, 3]})
-    for k, ch in enumerate(c for c in ("reading", "bearing") if c in diag.residuals):
-        d = diag.residuals[ch]
-        lm = d.covariates["landmark"]
-        ids = np.unique(lm)
-        m = [d.residual[lm == i].mean() for i in ids]
-        se = [2 * d.residual[lm == i].std() / np.sqrt(max((lm == i).sum(), 1)) for i in ids]
-        axes[0].errorbar(np.arange(len(ids)) + 0.15 * k, m, se, fmt="o", label=ch)
-        axes[0].set_xticks(np.arange(len(ids)), [str(int(i)) for i in ids])
-    axes[0].axhline(0, color="k", lw=0.5)
-    axes[0].set(xlabel="landmark", ylabel="mean residual (sigmas)", title="per landmark")
-    axes[0].legend(fontsize=8)
+    _landmark_axis(axes[0], diag)
     actions = "action" in diag.residuals["forward"].covariates       # continuous commands have none
     for k, ch in enumerate(("forward", "lateral", "turn") if actions else ()):
         d = diag.residuals[ch]
@@ -574,10 +657,11 @@ def _before_after_html(diag) -> str:
             f"(omega squared)</th></tr>{rows}</table>{png(before_after_figure(diag))}")
 
 
-def _failure_panels(diag) -> str:
-    """Covariate panels and residual correlation, the one with the stronger structure first."""
+def _failure_panels(diag, shown: set) -> str:
+    """Covariate panels and residual correlation, the one with the stronger structure first (correlation not again
+    when the ``shown`` views hold it)."""
     parts = [("covariates", png(covariate_panels(diag)))]
-    if diag.correlation:
+    if diag.correlation and "correlation" not in shown:
         ch, ratio = strongest(diag.correlation)
         top = max((c["strength"] for r in diag.channels.values() for c in r["covariates"]), default=0.0)
         text = (f"<p>Residual correlation over time (strongest: {html.escape(ch)}, {ratio:.1f} times the 99 % "
@@ -610,13 +694,18 @@ def diagnosis(path: Path, log: Log, diag) -> None:
         + (f"<b>Set aside, not physical:</b> {e(c.implausible)}. " if c.implausible else "")
         + f"{e(c.explanation)}</td></tr>" for c in diag.candidates)
     skipped = "".join(f"<li>{e(k)}: {e(v)}</li>" for k, v in diag.skipped.items())
-    sections = [f"<h2>Where the model fails</h2>{_failure_panels(diag)}",
-                f"<h2>On the field</h2>{png(field_heatmap(diag))}"]
+    views = lead(diag)
+    shown = {v.kind for v in views}
+    trace = (f"<h2>The trace of {e(diag.verdict)}</h2><p>What in the residuals points to it"
+             f"{' and to its look-alikes' if len(views) > 1 else ''}:</p>{_trace_html(diag, views)}") if views else ""
+    sections = [f"<h2>Where the model fails</h2>{_failure_panels(diag, shown)}",
+                "" if "field" in shown else f"<h2>On the field</h2>{png(field_heatmap(diag))}"]
     on_field = bool(diag.structure) and diag.structure[0]["name"] in ("place", "x", "y")   # where: the map first
     body = f"""<!doctype html><html><head><meta charset="utf-8"><title>casm-graph diagnosis</title>
 <style>{STYLE}</style></head><body>
 <h1>Diagnosis: <code>{e(diag.verdict)}</code></h1>
 {''.join(f'<p>{e(w)}</p>' for w in diag.words)}
+{trace}
 <h2>Channels</h2><p>Whitened residuals (1.0 = as noisy as the model says). Whiteness: Ljung-Box p.
 Strength: omega squared, the share of residual variance a covariate explains (mean or spread).</p>
 <table><tr><th>channel</th><th>rms</th><th>whiteness p</th><th>strongest</th><th>2nd</th><th>3rd</th></tr>{rows}</table>

@@ -13,6 +13,7 @@ import factors
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import motion_function
 from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
+from casm_graph.models.effects.actuator_lag import ActuatorLag, memory
 from casm_graph.models.model import Model
 
 
@@ -50,9 +51,20 @@ class TableActions(ActionPart):
 
     def motion_sigma(self, model: Model, poses=None) -> np.ndarray:
         """The levels per step of the log's median length, grown with the segment's time (a random walk): a log
-        whose steps vary in length (a real robot's odometry with gaps) trusts a one-second step less."""
+        whose steps vary in length (a real robot's odometry with gaps) trusts a one-second step less. With an
+        actuator lag, the velocity it held before the log is unknown (at rest, or settled at another action; the
+        graph takes it settled at the first), up to the table's velocity range: the first segments trust less what
+        the lag's memory of it could move them (as on continuous commands)."""
         steps = self.log.in_median_steps(self.lay.seg_steps * self.lay.seg_dt)
-        return np.asarray(model.motion_noise, float)[None, :] * np.sqrt(steps)[:, None]
+        sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(steps)[:, None]
+        lag = model.effects.get(ActuatorLag.name)
+        if lag and abs(lag.get("tau", 0.0)) > 0:
+            order = int(lag.get("order") or 1)
+            step = memory(self.log.dt, abs(lag["tau"]) * order, order)
+            held = np.add.reduceat(step, self.lay.knots[:-1])
+            spread = np.max(np.abs(model.velocities), axis=0)
+            sigma = np.sqrt(sigma ** 2 + (held[:, None] * spread[None, :]) ** 2)
+        return sigma
 
     def _fn(self, theta):
         return motion_function(self.motion_effects, self.m_ctx, theta)

@@ -75,6 +75,7 @@ class ActuatorLag(Effect):
     order = 1
     explains = (("forward", "time_since_action_change"), ("lateral", "time_since_action_change"),
                 ("turn", "time_since_action_change"), ("forward", "acceleration"), ("turn", "turn_acceleration"))
+    signature = "correlation"
     distinguished_by = ("commands that change faster than the lag, with sightings just after each change: the "
                         "body's motion trails the command, while a camera latency shifts only what the camera "
                         "sees")

@@ -37,6 +37,10 @@ class Effect:
     explains: tuple[tuple[str, str], ...] = ()   # (channel, covariate) residual structure it accounts for
     physics: str = ""                       # one sentence for the catalog and the diagnosis
     distinguished_by: str = ""              # what in a log tells it from the effects it resembles (look-alikes)
+    signature: str = "covariates"           # the diagnosis report's view that shows its trace: "covariates" (the residuals
+                                            # against what it ``explains``), "correlation" (against the commands' changes
+                                            # over time), "field" (over the floor), "speed" (the motion achieved over
+                                            # time), "landmarks" or "tails" (the sightings' residual distribution)
     noise_only: bool = False                # parameters set by the noise step, not least squares
     continuous_only: bool = False           # needs continuous (v, w) commands: the action-table simulator refuses it
     uses_velocity: bool = False             # its sensor hooks read ctx["velocity"] (the body velocity at the sighting)

@@ -20,6 +20,7 @@ class BatteryFade(Effect):
     orders = (1, 2)
     order = 1
     explains = (("forward", "time"), ("lateral", "time"), ("turn", "time"))
+    signature = "speed"
     distinguished_by = ("the same actions run early and late in every part of the field: a fading battery slows "
                         "the robot when it is, a slow floor where it is")
     physics = ("As the battery drains the servos deliver less power, so every action runs slower "

@@ -19,6 +19,7 @@ class CameraLatency(Effect):
     # the last two: a delay the smoothed poses take in (sightings that pin them) shows as motion trailing the commands
     explains = (("bearing", "turn_rate"), ("reading", "speed"), ("bearing", "speed"),
                 ("forward", "acceleration"), ("turn", "turn_acceleration"))
+    signature = "correlation"       # the smoothed poses take the delayed images in: the path trails the commands
     distinguished_by = ("turns of the body with the commands steady: the image trails the motion itself, while an"
                         " actuator lag delays only the motion after a command change")
     physics = ("Images take time to expose, transfer and process, so each sighting was taken where the "

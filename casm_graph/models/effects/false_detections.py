@@ -55,6 +55,7 @@ class FalseDetections(Effect):
     scale = (0.01,)
     noise_only = True
     explains = ()
+    signature = "tails"
     distinguished_by = ("many sightings of each landmark: a false one follows no landmark, while ordinary noise "
                         "stays near the sensor curve")
     physics = ("The vision system sometimes reports a beacon that is not there or names the wrong one "

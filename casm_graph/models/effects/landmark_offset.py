@@ -57,6 +57,7 @@ class LandmarkOffset(Effect):
     channel = "sensor"
     explains = (("reading", "landmark"), ("bearing", "landmark"), ("reading", "x"), ("reading", "y"),
                 ("bearing", "x"), ("bearing", "y"))
+    signature = "landmarks"
     distinguished_by = ("each landmark seen from several sides: a misplaced landmark biases the sightings by the "
                         "side it is seen from, a distorting lens by the image angle")
     prior_widths = (1.0, 0.2)        # a shape of five landmarks or more has directions the sightings hardly pin:

@@ -81,6 +81,7 @@ class SurfaceFriction(Effect):
     orders = (PATCH, 1, 2, 3, NODES)    # 0: a patch; 1: a plane; K: nodes per axis
     order = NODES
     explains = tuple((ch, c) for ch in ("forward", "lateral", "turn") for c in ("place", "x", "y"))
+    signature = "field"
     distinguished_by = ("the same actions run in every part of the field early and late: a slow floor slows the "
                         "robot where it is, a fading battery when it is")
     physics = ("The floor is not uniform: on part of the field (a carpet, a rug) the feet or wheels slip or drag, so "
