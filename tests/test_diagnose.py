@@ -560,3 +560,35 @@ def test_the_evidence_a_verdict_needs_is_an_option():
     wide = D.lookalikes(far, "actuator_lag", options=D.DiagnoseOptions(lookalike_bic=30))
     assert [g["effects"] for g in wide] == [["actuator_lag", "camera_latency"]] and wide[0]["closer_than"] == "closer than 30"
     assert D.DiagnoseOptions(folds=4).to_json()["folds"] == 4 and "proposal" in D.DEFAULTS.to_json()
+
+
+def test_the_report_opens_with_the_verdicts_view_and_its_lookalikes_join_it():
+    """The verdict's view first (its class's ``signature``), a look-alike with the same view joining it, an
+    ``unexplained:<covariate>`` verdict's covariate first, a user's own effect its strongest dependences, and
+    nothing for ``none``."""
+    from types import SimpleNamespace
+
+    from casm_graph.report.signature import lead
+
+    def test(name, strength):
+        return {"name": name, "kind": "mean", "strength": strength, "p": 1e-9}
+
+    channels = {"forward": {"covariates": [test("time", 0.02), test("x", 0.05)]},
+                "reading": {"covariates": [test("distance", 0.004), test("heading", 0.03)]}}
+    residuals = dict.fromkeys(("forward", "lateral", "turn", "reading"))
+
+    def diag(verdict, lookalikes=()):
+        return SimpleNamespace(verdict=verdict, lookalikes=[{"effects": list(lookalikes)}] if lookalikes else [],
+                               channels=channels, residuals=residuals, correlation={"turn": {}})
+
+    (v,) = lead(diag("actuator_lag", ["actuator_lag", "camera_latency"]))
+    assert v.kind == "correlation" and v.effects == ("actuator_lag", "camera_latency")
+    first, second = lead(diag("surface_friction", ["surface_friction", "battery_fade"]))
+    assert (first.kind, second.kind) == ("field", "speed")
+    (noise,) = lead(diag("range_dependent_noise"))       # what it explains, though a stronger pair is elsewhere
+    assert noise.kind == "covariates" and [(ch, c["name"]) for ch, c in noise.pairs] == [("reading", "distance")]
+    (u,) = lead(diag("unexplained:time"))
+    assert [(ch, c["name"]) for ch, c in u.pairs] == [("forward", "time")]
+    (mine,) = lead(diag("my_effect"))
+    assert [(ch, c["name"]) for ch, c in mine.pairs][0] == ("forward", "x")
+    assert lead(diag("none")) == []

@@ -2,8 +2,9 @@
 
 Each catalog effect names its view (:attr:`Effect.signature`): an actuator lag shows in the motion residuals against
 the commands' changes over time, a carpet on the floor map, a fading battery in the motion achieved over time, a
-moved landmark in its own sightings, false detections in the tails of the sightings' residuals, the others in the residuals against the covariates they explain. The report
-opens with the verdict's view, then its look-alikes', so that the picture a user sees first is the evidence.
+moved landmark in its own sightings, false detections in the tails of the sightings' residuals, the others in the
+residuals against the covariates they explain (a user's own effect: the strongest). The report opens with the
+verdict's view, then its look-alikes', so that the picture a user sees first is the evidence.
 """
 from __future__ import annotations
 
@@ -40,11 +41,12 @@ def ranked_pairs(diag, keep=lambda channel, covariate: True, top: int = TOP) -> 
     return tuple(sorted(pairs, key=lambda p: -p[1]["strength"])[:top])
 
 
-def view_of(diag, name: str) -> View | None:
-    """The view showing the effect ``name``'s trace in ``diag``'s residuals, or None when nothing there can."""
+def view_of(diag, name: str) -> View:
+    """The view showing the effect ``name``'s trace in ``diag``'s residuals (an effect outside the catalog: the
+    strongest dependences)."""
     cls = effect_class(name)
     if cls is None:
-        return None
+        return View("covariates", (name,), ranked_pairs(diag))
     kind = cls.signature if cls.signature in VIEWS else "covariates"
     if kind == "correlation" and not diag.correlation:
         kind = "covariates"
@@ -65,13 +67,15 @@ def lead(diag) -> list[View]:
         named = diag.verdict.partition(":")[2]
         return [View("covariates", (diag.verdict,),
                      ranked_pairs(diag, lambda ch, c: c == named) or ranked_pairs(diag))]
+    if diag.verdict == "none":
+        return []
     names = [diag.verdict] + [e for g in diag.lookalikes for e in g["effects"] if e != diag.verdict]
     views = []
     for name in dict.fromkeys(names):
         v = view_of(diag, name)
-        same = next((k for k, w in enumerate(views) if v is not None and (w.kind, w.pairs) == (v.kind, v.pairs)), None)
+        same = next((k for k, w in enumerate(views) if (w.kind, w.pairs) == (v.kind, v.pairs)), None)
         if same is not None:
             views[same] = View(v.kind, views[same].effects + v.effects, v.pairs)
-        elif v is not None:
+        else:
             views.append(v)
     return views
