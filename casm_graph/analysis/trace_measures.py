@@ -4,6 +4,7 @@ binned residuals, for the smoothed path takes most of it in)."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import norm
 
 
 def landmark_means(diag, channel: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -14,6 +15,11 @@ def landmark_means(diag, channel: str) -> tuple[np.ndarray, np.ndarray, np.ndarr
     m = np.array([d.residual[lm == i].mean() for i in ids])
     se = np.array([d.residual[lm == i].std() / np.sqrt(max((lm == i).sum(), 1)) for i in ids])
     return ids, m, se
+
+
+def normal_tail(beyond: float = 4.0) -> float:
+    """The share of a standard normal more than ``beyond`` sigmas out (either side)."""
+    return float(2 * norm.sf(beyond))
 
 
 def tail_share(r: np.ndarray, beyond: float = 4.0) -> float:
@@ -71,10 +77,8 @@ def speed_trend(channel, block: float = 2.0) -> tuple[float, float]:
 
 def moving(diag) -> list[str]:
     """The motion channels whose model moves the robot: those a scale of its speed can show on."""
-    out = []
-    for ch in ("forward", "lateral", "turn"):
-        d = diag.residuals.get(ch)
-        if d is not None and d.command is not None and d.span is not None and np.any(np.abs(d.command) > 0):
-            out.append(ch)
-    big = max((float(np.mean(np.abs(diag.residuals[c].command))) for c in out if c != "turn"), default=0.0)
-    return [c for c in out if c == "turn" or np.mean(np.abs(diag.residuals[c].command)) > 0.1 * big]
+    size = {ch: float(np.mean(np.abs(d.command))) for ch in ("forward", "lateral", "turn")
+            if (d := diag.residuals.get(ch)) is not None and d.command is not None and d.span is not None
+            and np.any(np.abs(d.command) > 0)}
+    big = max((v for ch, v in size.items() if ch != "turn"), default=0.0)
+    return [ch for ch, v in size.items() if ch == "turn" or v > 0.1 * big]

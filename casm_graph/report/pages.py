@@ -15,6 +15,7 @@ from matplotlib.patches import Ellipse
 
 from casm_graph.analysis.correlation import strongest
 from casm_graph.analysis.predictive import words as predictive_words
+from casm_graph.analysis.trace_measures import landmark_means, moving, normal_tail, speed_share, speed_trend, tail_share
 from casm_graph.fit import residuals
 from casm_graph.fit.result import Fit
 from casm_graph.graph import augmented
@@ -24,7 +25,6 @@ from casm_graph.models.effects.regional_motion_noise import determined, from_ent
 from casm_graph.models.effects.surface_friction import PATCH, SurfaceFriction
 from casm_graph.models.model import Model
 from casm_graph.models.velocity_table import VelocityTable
-from casm_graph.analysis.trace_measures import landmark_means, moving, speed_share, speed_trend, tail_share
 from casm_graph.report.signature import View, lead, ranked_pairs
 from casm_graph.sim.aibo import true_reading
 
@@ -480,7 +480,7 @@ def tails_figure(diag):
         ax.set_yscale("log")
         ax.set_ylim(0.5, None)
         ax.set(xlabel=f"{ch} residual (sigmas)", ylabel="sightings",
-               title=f"{ch}: {100 * tail_share(r):.2f} % beyond 4 sigmas (normal: 0.006 %)")
+               title=f"{ch}: {100 * tail_share(r):.2f} % beyond 4 sigmas (normal: {100 * normal_tail():.3f} %)")
         ax.legend(fontsize=8)
     if diag.set_aside:
         fig.suptitle(f"{diag.set_aside} further sighting(s) set aside before the fit as gross outliers", fontsize=9)

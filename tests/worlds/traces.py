@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from casm_graph.analysis.correlation import strongest
-from casm_graph.analysis.trace_measures import landmark_means, moving, speed_trend, tail_share
+from casm_graph.analysis.trace_measures import landmark_means, moving, normal_tail, speed_trend, tail_share
 from casm_graph.models.effects import REGISTRY, get as get_effect
 from casm_graph.report.signature import lead
 
@@ -20,8 +20,7 @@ P_SHOWN = 1e-3            # a covariate panel shows a dependence at this p or be
 BAND_SHOWN = 1.0          # a correlation panel shows structure beyond this multiple of its band
 FIELD_Z = 3.0             # the carpet's forward residuals below the rest by this many standard errors
 FADE_T = 3.0              # the motion achieved falls over time by this many standard errors
-TAIL_SHOWN = 10 * 6.3e-5  # ten times the normal's share beyond 4 sigmas
-CATALOG = set(REGISTRY)
+TAIL_SHOWN = 10 * normal_tail(4.0)   # ten times the normal's share beyond 4 sigmas
 
 
 def field_z(diag, patch: dict) -> float:
@@ -54,7 +53,7 @@ def check(diag, effect: str | None, geom: dict) -> dict:
     catalog effect."""
     views = lead(diag)
     out = {"lead": views[0].kind if views else None, "lead_effects": list(views[0].effects) if views else None}
-    cls = get_effect(effect) if effect in CATALOG else None
+    cls = get_effect(effect) if effect in REGISTRY else None
     if cls is None:
         return {**out, "expected": None, "position": None, "shown": None}
     out["expected"] = cls.signature

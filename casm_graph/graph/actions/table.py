@@ -13,7 +13,7 @@ import factors
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import motion_function
 from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
-from casm_graph.models.effects.actuator_lag import ActuatorLag, memory
+from casm_graph.models.effects.actuator_lag import ActuatorLag
 from casm_graph.models.model import Model
 
 
@@ -59,9 +59,7 @@ class TableActions(ActionPart):
         sigma = np.asarray(model.motion_noise, float)[None, :] * np.sqrt(steps)[:, None]
         lag = model.effects.get(ActuatorLag.name)
         if lag and abs(lag.get("tau", 0.0)) > 0:
-            order = int(lag.get("order") or 1)
-            step = memory(self.log.dt, abs(lag["tau"]) * order, order)
-            held = np.add.reduceat(step, self.lay.knots[:-1])
+            held = np.add.reduceat(ActuatorLag.start_memory(lag, self.log.dt), self.lay.knots[:-1])
             spread = np.max(np.abs(model.velocities), axis=0)
             sigma = np.sqrt(sigma ** 2 + (held[:, None] * spread[None, :]) ** 2)
         return sigma

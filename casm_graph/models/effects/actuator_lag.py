@@ -83,6 +83,14 @@ class ActuatorLag(Effect):
                "old motion and settles to the new velocity exponentially with time constant tau (order 2: "
                "through two such stages, a critically damped drive).")
 
+    @staticmethod
+    def start_memory(entry: dict, dt: np.ndarray) -> np.ndarray:
+        """(T,) displacement over each step per unit of velocity offset held from before the log, for the lag a
+        model.json entry records (``tau`` a stage's time constant, ``order`` its stages): :func:`memory` at its mean
+        delay; zeros without a delay."""
+        order = int(entry.get("order") or 1)
+        return memory(dt, abs(entry.get("tau", 0.0)) * order, order)
+
     def velocity(self, theta, v, ctx):
         tau = max(abs(theta[0]), MIN_TAU)
         a, b = ctx["since"] / tau, (ctx["since"] + ctx["dt"]) / tau
