@@ -74,14 +74,21 @@ def trial(kind: str, effect: str | None, seed: int, minutes: float, workdir: Pat
                "candidates": [{"effect": c.effect, "delta_bic": c.delta_bic, "heldout": c.heldout_nll_drop,
                                "order": c.order} for c in d1.candidates[:4]],
                "error_before": trajectory_rms(base.trajectory, log.truth), "added": add,
-               "trace": traces.check(d1, effect, truth.get("geometry") or truth.get("effect") or {})}
+               "trace": traces.check(d1, effect, truth.get("geometry") or truth.get("effect") or {}),
+               "trends": trends(d1)}
         if add is not None:
             fixed = cg.calibrate(log, effects=[add], seed=seed, sensor_basis=sensor_basis, step_heading=step_heading)
             d2 = cg.diagnose(log, fixed, before=d1, options=options)
             row.update(verdict_after=d2.verdict, error_after=trajectory_rms(fixed.trajectory, log.truth),
+                       trends_after=trends(d2),
                        predictive=d2.before_after.get("predictive") if d2.before_after else None)
     row["seconds"] = round(time.perf_counter() - t0, 1)
     return row
+
+
+def trends(diag) -> dict:
+    """Each moving motion channel's trend of the motion achieved: [rate per minute, t]."""
+    return {ch: [r["trend"]["rate"], r["trend"]["t"]] for ch, r in diag.channels.items() if "trend" in r}
 
 
 def wanted(row: dict) -> str:

@@ -592,3 +592,34 @@ def test_the_report_opens_with_the_verdicts_view_and_its_lookalikes_join_it():
     (mine,) = lead(diag("my_effect"))
     assert [(ch, c["name"]) for ch, c in mine.pairs][0] == ("forward", "x")
     assert lead(diag("none")) == []
+
+
+def test_a_fade_spread_over_every_step_backs_its_candidate_through_the_trend_of_the_motion_achieved():
+    """A robot achieving 1 % less of its modelled forward motion each minute, the residuals drifting over seconds:
+    the binned time test misses it (p 8e-5, 0.5 % of the variance), the trend test finds the fall (kind ``scale``)
+    and it backs battery_fade as its own pair, never a material structure; the same channel without the fade (or
+    with the test off) backs nothing."""
+    rng = np.random.default_rng(3)
+    n, dt = 4800, 0.05
+    t = np.arange(n) * dt
+    v = 0.3 + 0.25 * np.sin(t / 7.0)
+    explains = {"battery_fade": (("forward", "time"), ("turn", "time"))}
+    fade = D.Candidate("battery_fade", "motion", -3000.0, float("nan"), "because", 3.0, heldout_skipped=D.NO_FOLDS)
+
+    def report(rate, options=D.DEFAULTS):
+        raw = v * dt * (rate * (t - t.mean()) / 60 + 0.04 * ar1(n, 0.9, rng))
+        ch = Channel("forward", raw / (0.04 * v * dt), raw, t, {"time": t}, command=v, span=np.full(n, dt))
+        return D.channel_report({"forward": ch}, options)
+
+    rep = report(-0.01)
+    trend = rep["forward"]["trend"]
+    assert trend["kind"] == "scale" and trend["t"] < -6 and abs(trend["rate"] + 0.01) < 0.004
+    assert D.structures(rep) == [] or all(s["kind"] != "scale" for s in D.structures(rep))
+    found = D.own_structure(fade, explains, rep, [])
+    assert found is not None and found["kind"] == "scale" and found["channel"] == "forward"
+    v_, words = D.verdict([fade], [], explains, report=rep)
+    assert v_ == "battery_fade" and "per minute" in words[0]
+    quiet = report(0.0)
+    assert abs(quiet["forward"]["trend"]["t"]) < 4 and D.own_structure(fade, explains, quiet, []) is None
+    off = report(-0.01, D.DiagnoseOptions(speed_trend=False))
+    assert "trend" not in off["forward"] and D.own_structure(fade, explains, off, []) is None

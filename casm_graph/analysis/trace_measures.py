@@ -1,6 +1,6 @@
 """The numbers behind the diagnosis report's trace views: per-landmark means, the sightings' tails, and the share
 of its modelled motion the robot achieved over time (a fade's trace: spread over every step, it hardly shows in
-binned residuals, for the smoothed path takes most of it in)."""
+binned residuals, for the smoothed path takes most of it in; the diagnosis tests its trend too)."""
 from __future__ import annotations
 
 import numpy as np
@@ -61,24 +61,36 @@ def blocked(channel, block: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.nda
             (np.bincount(k, t, n)[keep] / count[keep]))
 
 
-def speed_trend(channel, block: float = 2.0) -> tuple[float, float]:
+def speed_trend(channel, block: float = 2.0, memory: float = 10.0) -> tuple[float, float]:
     """(change of the achieved share of the modelled motion per minute, its t): least squares of the residual
-    displacement on the modelled one times time, over blocks of ``block`` s, with a sandwich standard error."""
+    displacement on the modelled one times time, over blocks of ``block`` s, with Newey and West's standard error
+    over ``memory`` s of neighbouring blocks (slip that persists for seconds correlates them)."""
     e, m, t = blocked(channel, block)
     if len(e) < 4:
         return 0.0, 0.0
     x = np.column_stack([m, m * (t - t.mean()) / 60])
     coef, *_ = np.linalg.lstsq(x, e, rcond=None)
     bread = np.linalg.pinv(x.T @ x)
-    meat = (x * ((e - x @ coef) ** 2)[:, None]).T @ x
+    u = x * (e - x @ coef)[:, None]
+    meat = u.T @ u
+    lags = int(round(memory / block))
+    for k in range(1, min(lags, len(u) - 1) + 1):
+        g = u[k:].T @ u[:-k]
+        meat += (1 - k / (lags + 1)) * (g + g.T)
     se = float(np.sqrt(max((bread @ meat @ bread)[1, 1], 0.0)))
     return float(coef[1]), float(coef[1] / se) if se > 0 else 0.0
 
 
 def moving(diag) -> list[str]:
     """The motion channels whose model moves the robot: those a scale of its speed can show on."""
+    return moving_channels(diag.residuals)
+
+
+def moving_channels(chs: dict) -> list[str]:
+    """The motion channels of ``chs`` (name -> residual channel) whose model moves the robot: the turn, and each
+    axis whose mean modelled speed is at least a tenth of the fastest translation's."""
     size = {ch: float(np.mean(np.abs(d.command))) for ch in ("forward", "lateral", "turn")
-            if (d := diag.residuals.get(ch)) is not None and d.command is not None and d.span is not None
+            if (d := chs.get(ch)) is not None and d.command is not None and d.span is not None
             and np.any(np.abs(d.command) > 0)}
     big = max((v for ch, v in size.items() if ch != "turn"), default=0.0)
     return [ch for ch, v in size.items() if ch == "turn" or v > 0.1 * big]
