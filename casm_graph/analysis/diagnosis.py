@@ -614,7 +614,8 @@ def own_pairs(c, explains: dict, report: dict, options: DiagnoseOptions = DEFAUL
     """(channel, test) of each of ``c``'s own pairs the channel ``report`` ran (its covariate tests and trends), and
     the p they are tested at: ``options.structure_p`` times the report's tests over the own pairs among them (one
     family-wise error)."""
-    tests = [(ch, t) for ch, r in report.items() for t in r.get("covariates", []) + ([r["trend"]] if "trend" in r else [])]
+    tests = [(ch, t) for ch, r in report.items()
+             for t in r.get("covariates", []) + ([r["trend"]] if "trend" in r else [])]
     own = [(ch, t) for ch, t in tests if (ch, t["name"]) in tuple(explains.get(c.effect, ()))]
     return own, options.structure_p * len(tests) / max(len(own), 1)
 

@@ -496,9 +496,9 @@ def speed_figure(diag, bins: int = 12):
     for k, ch in enumerate(chans):
         d = diag.residuals[ch]
         edges = np.linspace(np.nanmin(d.time), np.nanmax(d.time) + 1e-9, bins + 1)
-        share, se = speed_share(d, edges)
+        share, se = speed_share(d, edges, diag.options.trend_block)
         mid = 0.5 * (edges[:-1] + edges[1:]) / 60
-        rate, t = speed_trend(d)
+        rate, t = speed_trend(d, diag.options.trend_block, diag.options.trend_memory)
         ax.errorbar(mid + 0.05 * (k - 1) * (mid[1] - mid[0]), 100 * share, 200 * se, fmt="o-", ms=3, capsize=2,
                     label=f"{ch}: {100 * rate:+.2f} % per minute (t {t:.1f})")
     ax.axhline(100, color="k", lw=0.5)

@@ -78,7 +78,8 @@ def check(diag, effect: str | None, geom: dict) -> dict:
         out.update(measure="sightings vs landmark", p=float(p), furthest_off=most_off(diag),
                    moved=geom.get("landmark"), shown=p <= P_SHOWN)
     elif view.kind == "speed":
-        trends = {ch: speed_trend(diag.residuals[ch])[1] for ch in moving(diag)}
+        o = diag.options
+        trends = {ch: speed_trend(diag.residuals[ch], o.trend_block, o.trend_memory)[1] for ch in moving(diag)}
         ch = min(trends, key=trends.get)
         out.update(measure=f"{ch} achieved share per minute, t", t=trends[ch], shown=trends[ch] <= -FADE_T)
     else:
