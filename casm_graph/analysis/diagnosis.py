@@ -145,9 +145,8 @@ class DiagnoseOptions:
     #                                    its modelled motion achieved (``trend`` in its report; a pair (channel, time) of
     #                                    kind ``scale`` among a candidate's own pairs, never a material structure): a
     #                                    fade spread over every step hides from binned means, which the smoothed path
-    #                                    takes in (continuous world, four minutes, seeds 6-16: the fades the binned
-    #                                    time test missed at t -3.2 to -4.7, the found -6.4 to -12.2; effect-free
-    #                                    |t| <= 3.3)
+    #                                    takes in (continuous world, four minutes, seeds 6-17: fades named 8 of 12, 7
+    #                                    without, at t -4.7 to -13.4; effect-free |t| <= 3.3, other effects' <= 3.7)
     trend_block: float = 2.0           # s: the trend test sums the residual and modelled motion over blocks this long
     trend_memory: float = 10.0         # s: and its standard error counts the correlation of blocks this far apart
     #                                    (effect-free seed 9: t -3.1 without, -3.3 with)
