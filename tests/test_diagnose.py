@@ -256,6 +256,25 @@ def test_a_weak_place_pair_backs_its_candidate_when_it_holds_across_visits_stron
     assert D.verdict([friction], [], explains, report=report(2e-3))[0] == "none"
 
 
+def test_the_weak_place_exemption_keeps_one_error_over_the_candidates_place_pairs():
+    """Nine place pairs of the friction candidate tested across visits: a weak one at p 3e-5 (the effect-free
+    continuous seed 1's turn against x, named surface_friction at 1e-4 per pair) no longer backs it, one at 7e-7
+    (the carpet seed 5's forward against y) still does."""
+    def report(weak_visits_p):
+        cov = {ch: [{"name": n, "strength": 0.001, "p": 0.5, "kind": "mean", "visits_p": 0.5, "visits": 118}
+                    for n in ("x", "y", "cells")] for ch in ("forward", "lateral", "turn")}
+        cov["turn"][0] = {"name": "x", "strength": 0.0066, "p": 1e-7, "kind": "mean", "visits_p": weak_visits_p,
+                          "visits": 118}
+        return {ch: {"covariates": c} for ch, c in cov.items()}
+    explains = {"surface_friction": tuple((ch, n) for ch in ("forward", "lateral", "turn") for n in ("x", "y", "cells"))}
+    friction = D.Candidate("surface_friction", "motion", -2899.0, float("nan"), "because", 16.0,
+                           heldout_skipped=D.NO_FOLDS)
+    assert D.own_structure(friction, explains, report(2.9e-5), []) is None
+    found = D.own_structure(friction, explains, report(7e-7), [])
+    assert found is not None and (found["channel"], found["name"]) == ("turn", "x")
+    assert D.own_structure(friction, explains, report(2.9e-5), [], D.DiagnoseOptions(visit_strong_p=1e-3)) is not None
+
+
 def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_visits():
     """The forward speed falling toward one side of the field (a floor's plane): the sparse regression's term in y
     names the friction candidate built for (forward, y) when the channel report says the dependence holds across

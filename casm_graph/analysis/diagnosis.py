@@ -128,11 +128,13 @@ class DiagnoseOptions:
     #                                    world, six minutes: the carpets' best place pair at 1e-13 to 0.003, an
     #                                    effect-free log's and the weakest fade's (named surface_friction without it)
     #                                    at 0.08 and 0.012 (0: no such test)
-    visit_strong_p: float = 1e-4       # a candidate's own place pair holding across visits at this level counts as its
-    #                                    own structure however small a share of the variance it explains: a floor
-    #                                    slows the robot a little on every pass (continuous world, carpet seed 5:
-    #                                    forward and turn residuals against y 0.59 and 0.72 %, across 169 visits p 7e-7
-    #                                    and 2e-5, was none; 0: never)
+    visit_strong_p: float = 1e-4       # a candidate's own place pair holding across visits at this level, divided by
+    #                                    the number of its own pairs tested across visits (one family-wise error),
+    #                                    counts as its own structure however small a share of the variance it
+    #                                    explains: a floor slows the robot a little on every pass (continuous world,
+    #                                    carpet seed 5: forward residuals against y 0.59 %, across 169 visits p 7e-7,
+    #                                    was none; an effect-free log's turn against x, 0.66 %, p 3e-5 over nine
+    #                                    pairs, named surface_friction at 1e-4 per pair; 0: never)
     long_run_seconds: float = 0.0      # s: > 0 deflates a motion channel's test against each covariate by the long-run
     #                                    variance of its residuals' deviations from their groups' means (Bartlett's
     #                                    weights over lags up to this time), where it exceeds the lag-one (AR(1))
@@ -596,16 +598,18 @@ def own_structure(c, explains: dict, report: dict, structure: list[dict],
     it ran: the material ``structure`` is a search over every pair, a candidate's corroboration a test of its few,
     and both then keep one family-wise error. Strong enough to count (``structure_omega2``, and ``structure_share``
     of the strongest material structure, unless a motion pair against place holds across the robot's visits
-    below ``options.visit_strong_p``), not the closed loop's ``feedback``, and a motion pair against place
-    holding across the robot's visits (``visits_p`` below ``options.visit_p``); None when none passes, or when ``c``
-    has held-out folds (they are its second line) or ``options.own_structure`` is off."""
+    below ``options.visit_strong_p`` over the own pairs so tested), not the closed loop's ``feedback``, and a
+    motion pair against place holding across the robot's visits (``visits_p`` below ``options.visit_p``); None
+    when none passes, or when ``c`` has held-out folds (they are its second line) or ``options.own_structure`` is
+    off."""
     if not options.own_structure or c.heldout_skipped != NO_FOLDS or not report:
         return None
     own, p = own_pairs(c, explains, report, options)
     floor = max(options.structure_omega2, options.structure_share * (structure[0]["strength"] if structure else 0.0))
+    strong_visits = options.visit_strong_p / max(sum("visits_p" in t for _, t in own), 1)
     found = [{"channel": ch, **t, "p_threshold": p} for ch, t in own
              if t["p"] < p and t["kind"] != "feedback" and repeats(t, options.visit_p)
-             and (t["strength"] >= floor or t.get("visits_p", 1.0) < options.visit_strong_p)]
+             and (t["strength"] >= floor or t.get("visits_p", 1.0) < strong_visits)]
     return max(found, key=lambda t: t["strength"]) if found else None
 
 

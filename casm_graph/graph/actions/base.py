@@ -18,6 +18,14 @@ def velocity_window(model: Model, effects) -> float:
                      for e in effects if getattr(e, "velocity_window", "")))
 
 
+def with_lag_memory(sigma: np.ndarray, held: np.ndarray, velocities: np.ndarray) -> np.ndarray:
+    """``sigma`` (S, 3) widened by what an actuator lag's memory of the velocity before the log could move each
+    segment: ``held`` (S,) its displacement per unit of velocity offset, up to the range of the model's
+    ``velocities`` (n, 3) (that velocity is unknown: at rest, or settled at another command)."""
+    spread = np.max(np.abs(velocities), axis=0)
+    return np.sqrt(sigma ** 2 + (held[:, None] * spread[None, :]) ** 2)
+
+
 def sighting_means(log: Log, rows: np.ndarray, window: float) -> np.ndarray:
     """(N, c) mean of the per-step ``rows`` (T, c) over the ``window`` seconds before each sighting, and at least
     over the step that ends at it: the displacement a delayed image missed, divided by the delay, when the

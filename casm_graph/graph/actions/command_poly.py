@@ -16,7 +16,7 @@ import numpy as np
 
 import factors
 from casm_graph.graph import noise
-from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
+from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window, with_lag_memory
 from casm_graph.graph.augmented import motion_function
 from casm_graph.io.log import Log, wrap
 from casm_graph.models.effects import regional_motion_noise as RMN
@@ -147,10 +147,9 @@ class CommandPoly(ActionPart):
             vr, vt = RMN.variances(k[self.seg_region], self.seg_r, self.seg_turn)
             sigma[:, 0], sigma[:, 2] = np.sqrt(vr), np.sqrt(vt)
         cm = model.command
-        if cm.lag > 0:       # the velocity the lag held before the log is unknown, up to the log's velocity range
-            memory = np.sum(cm.lag_memory(log.dt)[lay.seg_idx] * (lay.seg_dt > 0), axis=1)
-            spread = np.max(np.abs(cm.velocities(log.controls)), axis=0)
-            sigma = np.sqrt(sigma ** 2 + (memory[:, None] * spread[None, :]) ** 2)
+        if cm.lag > 0:
+            held = np.sum(cm.lag_memory(log.dt)[lay.seg_idx] * (lay.seg_dt > 0), axis=1)
+            sigma = with_lag_memory(sigma, held, cm.velocities(log.controls))
         return sigma
 
     def motion_noise_step(self, model: Model, problem, e: np.ndarray, A, groups: dict, lu) -> Model:

@@ -12,7 +12,7 @@ import numpy as np
 import factors
 from casm_graph.graph import table as G
 from casm_graph.graph.augmented import motion_function
-from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window
+from casm_graph.graph.actions.base import ActionPart, NoiseRules, sighting_means, velocity_window, with_lag_memory
 from casm_graph.models.effects.actuator_lag import ActuatorLag
 from casm_graph.models.model import Model
 
@@ -60,8 +60,7 @@ class TableActions(ActionPart):
         lag = model.effects.get(ActuatorLag.name)
         if lag and abs(lag.get("tau", 0.0)) > 0:
             held = np.add.reduceat(ActuatorLag.start_memory(lag, self.log.dt), self.lay.knots[:-1])
-            spread = np.max(np.abs(model.velocities), axis=0)
-            sigma = np.sqrt(sigma ** 2 + (held[:, None] * spread[None, :]) ** 2)
+            sigma = with_lag_memory(sigma, held, np.asarray(model.velocities))
         return sigma
 
     def _fn(self, theta):
