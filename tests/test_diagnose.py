@@ -258,7 +258,7 @@ def test_a_weak_place_pair_backs_its_candidate_when_it_holds_across_visits_stron
 
 def test_the_weak_place_exemption_keeps_one_error_over_the_candidates_place_pairs():
     """Nine place pairs of the friction candidate tested across visits: a weak one at p 3e-5 (the effect-free
-    continuous seed 1's turn against x, named surface_friction at 1e-4 per pair) no longer backs it, one at 7e-7
+    continuous seed 1's turn against x, which 1e-4 per pair would let count) does not back it, one at 7e-7
     (the carpet seed 5's forward against y) still does."""
     def report(weak_visits_p):
         cov = {ch: [{"name": n, "strength": 0.001, "p": 0.5, "kind": "mean", "visits_p": 0.5, "visits": 118}
