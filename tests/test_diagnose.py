@@ -296,16 +296,40 @@ def test_a_discovered_term_in_place_backs_a_candidate_only_when_it_holds_across_
 def test_an_unexplained_verdict_needs_a_dependence_on_place_that_holds_across_visits():
     """No candidate supported and the only material structure turn residuals against place: each visit's own
     offset (across visits p 0.4) is the slip's wander, verdict none with the words saying why; the same dependence
-    holding across visits, or a weaker one on time beside it, is something the model lacks."""
+    holding across visits, or a weaker one on time beside it, is something the model lacks, and the words name the
+    catalog effects that lower BIC without a second line."""
     place = {"channel": "turn", "name": "place", "strength": 0.03, "p": 1e-12, "kind": "mean", "visits_p": 0.4,
              "visits": 40}
     time = {"channel": "forward", "name": "time", "strength": 0.02, "p": 1e-9, "kind": "mean"}
     weak = [cand("surface_friction", -40, float("nan"))]
     v, words = D.verdict(weak, [place])
     assert v == "none" and "not across the robot's 40 visits" in " ".join(words), words
-    assert D.verdict(weak, [place, time])[0] == "unexplained:time"
+    v, words = D.verdict(weak, [place, time])
+    assert v == "unexplained:time" and "without a second line: surface_friction (delta BIC -40.0)" in words[-1]
+    assert "lower BIC without a second line" not in " ".join(D.verdict([cand("surface_friction", -5, 1)],
+                                                                       [place, time])[1])
     assert D.verdict(weak, [{**place, "visits_p": 0.001}])[0] == "unexplained:place"
     assert D.verdict(weak, [place], options=D.DiagnoseOptions(visit_p=0.0))[0] == "unexplained:place"   # test off
+
+
+def test_an_unexplained_motion_verdict_takes_the_proposals_covariate():
+    """The bins see a turn rate that grows with speed as turn residuals against time (the robot's speed changes along
+    the log); the regression's strongest term is in the speed, and the verdict says so. A sensor channel's structure,
+    no proposal, or a proposal term against place that does not hold across visits leave the verdict as it was."""
+    found = {"terms": {"turn: speed": 0.126}, "axes": {"turn": {"t_values": {"turn: speed": 6.9}}}}
+    time = {"channel": "turn", "name": "time", "strength": 0.013, "p": 2e-12, "kind": "mean"}
+    v, words = D.attributed("unexplained:time", ["w"], found, [time], None, 0.01)
+    assert v == "unexplained:speed" and len(words) == 2 and "|t| = 6.9" in words[1], words
+    assert D.attributed("unexplained:time", ["w"], found, [{**time, "channel": "reading"}], None, 0.01)[0] \
+        == "unexplained:time"
+    assert D.attributed("unexplained:time", ["w"], {}, [time], None, 0.01) == ("unexplained:time", ["w"])
+    in_x = {"terms": {"forward: v_forward*x": 0.03}, "axes": {"forward": {"t_values": {"forward: v_forward*x": 7.0}}}}
+    wander = {"forward": {"covariates": [{"name": "x", "visits_p": 0.4}]}}
+    assert D.attributed("unexplained:time", ["w"], in_x, [{**time, "channel": "forward"}], wander, 0.01)[0] \
+        == "unexplained:time"
+    held = {"forward": {"covariates": [{"name": "x", "visits_p": 0.001}]}}
+    assert D.attributed("unexplained:time", ["w"], in_x, [{**time, "channel": "forward"}], held, 0.01)[0] \
+        == "unexplained:x"
 
 
 def test_verdict_rule():

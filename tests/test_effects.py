@@ -228,8 +228,25 @@ def test_a_floor_that_changes_the_speed_beyond_physics_is_implausible():
     assert grid.implausible(np.array([0.9, -0.9, 0.0, 0.0, 1.0])) is not None          # 0.1 against 1.9
     entry = {**grid.describe(np.array([0.9, -0.9, 0.0, 0.0, 1.0]))}
     assert unphysical(get("surface_friction:2"), entry) == grid.implausible(np.array([0.9, -0.9, 0.0, 0.0, 1.0]))
-    assert unphysical(get("battery_fade"), {"rate": 50.0}) is None                    # effects without the hook
+    assert unphysical(get("camera_latency"), {"rate": 50.0}) is None                  # effects without the hook
     assert unphysical(get("regional_motion_noise"), {"k_r": [1.0, 2.0]}) is None      # list-valued entries too
+
+
+def test_a_fade_that_speeds_the_robot_up_is_implausible(short):
+    """A battery only loses charge: a fade fit that leaves the robot faster at the log's end (one minute here) than at
+    its start cannot happen, of either member; a quadratic that rises early and ends slower can. Without a log
+    there is no end to judge by."""
+    log, _ = short
+    minutes = (log.pose_times[-1] - log.pose_times[0]) / 60.0
+    assert minutes == pytest.approx(1.0, abs=0.01)
+    line, bend = get("battery_fade")(log), get("battery_fade:2")(log)
+    assert line.implausible(np.array([0.02])) is None
+    assert "2.0 % faster at the log's end" in line.implausible(np.array([-0.02]))
+    assert bend.implausible(np.array([-0.01, 0.03])) is None                           # ends 2 % slower
+    assert "1.0 % faster" in bend.implausible(np.array([0.02, -0.03]))
+    assert get("battery_fade")(None).implausible(np.array([-0.02])) is None
+    entry = line.describe(np.array([-0.02]))
+    assert unphysical(get("battery_fade"), entry, log) == line.implausible(np.array([-0.02]))
 
 
 def test_friction_is_a_family_of_grids_named_restored_and_checked(tmp_path):

@@ -76,7 +76,8 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
         c.change = sighting_change(part.base_prediction, c.prediction)
     v, words = verdict(cands, struct, explains, o, last=part.last, report=rep)
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, part.challenge,
-                               o.proposal_challenge, o.lookalike_bic, report=rep, visit_p=o.visit_p)
+                               o.proposal_challenge, o.lookalike_bic, report=rep, visit_p=o.visit_p,
+                               structure=struct)
     alike = lookalikes(cands, v, separated_by, relative=part.relative, options=o, base=part.base_prediction)
     words += family_words(cands, v) + lookalike_words(alike) + part.advice(found) + part.notes(cands)
     diag = Diagnosis(rep, cands, v, words, struct, part.fit, chs, time.perf_counter() - t0, skipped,

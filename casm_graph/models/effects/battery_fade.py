@@ -32,6 +32,18 @@ class BatteryFade(Effect):
         self.params = ("loss_per_minute", "loss_per_minute_squared")[:order]
         self.start, self.scale = (0.0,) * order, (0.005, 0.0005)[:order]
 
+    def implausible(self, theta):
+        """A battery only loses charge: a fit that has the robot faster at the log's end than at its start follows
+        something else (a slow floor the robot crosses early in the log)."""
+        if self.log is None or len(self.log.pose_times) < 2:
+            return None
+        m = (self.log.pose_times[-1] - self.log.pose_times[0]) / 60.0
+        end = 1.0 - m * np.polyval(np.asarray(theta, float)[::-1], m)
+        if end > 1.0:
+            return (f"the robot would run {100 * (end - 1.0):.1f} % faster at the log's end than at its start, "
+                    "where a battery only loses charge")
+        return None
+
     def velocity(self, theta, v, ctx):
         m = ctx["t"] / 60.0
         return v * (1.0 - m * np.polyval(np.asarray(theta, float)[::-1], m))[:, None]
