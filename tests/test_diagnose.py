@@ -314,8 +314,9 @@ def test_an_unexplained_verdict_needs_a_dependence_on_place_that_holds_across_vi
 
 def test_an_unexplained_motion_verdict_takes_the_proposals_covariate():
     """The bins see a turn rate that grows with speed as turn residuals against time (the robot's speed changes along
-    the log); the regression's strongest term is in the speed, and the verdict says so. A sensor channel's structure,
-    no proposal, or a proposal term against place that does not hold across visits leave the verdict as it was."""
+    the log); the regression's strongest term on the turn is in the speed, and the verdict says so. A sensor
+    channel's structure, no proposal, a term on another channel only, or a term against place that does not hold
+    across visits leave the verdict as it was."""
     found = {"terms": {"turn: speed": 0.126}, "axes": {"turn": {"t_values": {"turn: speed": 6.9}}}}
     time = {"channel": "turn", "name": "time", "strength": 0.013, "p": 2e-12, "kind": "mean"}
     v, words = D.attributed("unexplained:time", ["w"], found, [time], None, 0.01)
@@ -323,6 +324,8 @@ def test_an_unexplained_motion_verdict_takes_the_proposals_covariate():
     assert D.attributed("unexplained:time", ["w"], found, [{**time, "channel": "reading"}], None, 0.01)[0] \
         == "unexplained:time"
     assert D.attributed("unexplained:time", ["w"], {}, [time], None, 0.01) == ("unexplained:time", ["w"])
+    forward = {"terms": {"forward: w": 0.01}, "axes": {"forward": {"t_values": {"forward: w": 15.0}}}}
+    assert D.attributed("unexplained:time", ["w"], forward, [time], None, 0.01)[0] == "unexplained:time"   # forward only
     in_x = {"terms": {"forward: v_forward*x": 0.03}, "axes": {"forward": {"t_values": {"forward: v_forward*x": 7.0}}}}
     wander = {"forward": {"covariates": [{"name": "x", "visits_p": 0.4}]}}
     assert D.attributed("unexplained:time", ["w"], in_x, [{**time, "channel": "forward"}], wander, 0.01)[0] \

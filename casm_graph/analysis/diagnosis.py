@@ -900,8 +900,8 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
     regression's slow trend in time did). A term in a place covariate is structure only when the channel
     ``report``'s test of it holds across the robot's visits (:func:`holds_across_visits` at ``visit_p``), for a
     candidate and for the ``unexplained:`` verdict alike (whose strongest term it would be). An ``unexplained:``
-    verdict on a motion channel's ``structure`` takes the covariate of the proposal's strongest term when that
-    differs and holds: the regression weighs every term together, the bins one covariate at a time."""
+    verdict on a motion channel's ``structure`` takes the covariate of the proposal's strongest term on that channel
+    when it differs and holds: the regression weighs every term together, the bins one covariate at a time."""
     if verdict_name.startswith("unexplained:"):
         found = propose(chs, options)
         return (*attributed(verdict_name, words, found, structure, report, visit_p), found)
@@ -932,23 +932,24 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
 
 def attributed(verdict_name: str, words: list[str], found: dict, structure: list[dict], report: dict | None,
                visit_p: float) -> tuple[str, list[str]]:
-    """An ``unexplained:<covariate>`` verdict and its words, the covariate the proposal's strongest term's when the
-    verdict's structure (the first of ``structure`` in that covariate holding across visits at ``visit_p``) is a
-    motion channel's and that term's covariate differs and holds across the robot's visits too
-    (:func:`holds_across_visits`): a robot whose speed changes along the log shows a turn rate that grows with
-    speed against time as well (continuous world, seed 1: turn residuals against time, 1.3 % of their variance;
-    the proposal turn += 0.126 speed, |t| 6.9)."""
+    """An ``unexplained:<covariate>`` verdict and its words, the covariate that of the proposal's strongest term on
+    the same channel when the verdict's structure (the first of ``structure`` in that covariate holding across
+    visits at ``visit_p``) is a motion channel's and that term's covariate differs and holds across the robot's
+    visits too (:func:`holds_across_visits`): a robot whose speed changes along the log shows a turn rate that
+    grows with speed against time as well (continuous world, seed 1: turn residuals against time, 1.3 % of their
+    variance; the proposal turn += 0.126 speed, |t| 6.9). A term on another channel is another structure."""
     named = verdict_name.partition(":")[2]
     s = next((s for s in structure if s["name"] == named and repeats(s, visit_p)), None)
     if not found or s is None or s["channel"] not in MOTION_CHANNELS:
         return verdict_name, words
-    axis, cov = term_covariates(found)[0]
-    if cov == named or not holds_across_visits(report, axis, cov, visit_p):
+    cov = next((c for a, c in term_covariates(found) if a == s["channel"]), named)
+    if cov == named or not holds_across_visits(report, s["channel"], cov, visit_p):
         return verdict_name, words
+    t = max(abs(v) for v in found["axes"][s["channel"]]["t_values"].values())
     return f"unexplained:{cov}", words + [
-        f"A sparse regression of the motion residuals, every term weighed together, puts the structure on {cov} "
-        f"(its strongest term, {axis} residuals, |t| = {strongest_t(found):.1f}): the dependence on {named} the bins "
-        f"show is {cov} varying along {named}."]
+        f"A sparse regression of the motion residuals, every term weighed together, puts the {s['channel']} "
+        f"structure on {cov} (its strongest term there, |t| = {t:.1f}); the dependence on {named} the bins show "
+        f"comes with it."]
 
 
 def challenged(verdict_name: str, words: list[str], chs: dict, options: ProposalOptions, cands, challenge,
