@@ -191,8 +191,8 @@ def test_a_turn_rate_growing_with_speed_is_proposed_not_named_a_fade(tmp_path):
     """Continuous world, seed 1, 4 minutes: turn += 0.152 x forward speed. By default the calibration's turn map
     holds it (its term in v kept, within 25 %). In the paper's form (``cross_terms=False``) the battery fade's fit
     has the robot faster at the log's end, not physical, and the turn residuals' binned structure is against time;
-    the proposal, every term weighed together, puts it on the speed: unexplained:speed, turn += 0.126 speed,
-    heading RMS 0.0045 -> 0.0043 rad once added, none afterwards (benchmarks/proposal.py --kind continuous).
+    the proposal, every term weighed together, puts it on the speed: unexplained:speed, turn += 0.126 speed; once
+    added the heading error falls and the next verdict is none (benchmarks/proposal.py --kind continuous).
     CI tries the catalog effects that took such verdicts; ``CASM_FULL=1`` every candidate."""
     candidates = None if FULL else ["battery_fade", "surface_friction"]
     generate(tmp_path / "log", kind="continuous", minutes=4, seed=1, effect="speed_turn", min_range=0.8)

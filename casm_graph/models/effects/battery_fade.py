@@ -37,13 +37,17 @@ class BatteryFade(Effect):
         something else (a slow floor the robot crosses early in the log)."""
         if self.log is None or len(self.log.pose_times) < 2:
             return None
-        m = (self.log.pose_times[-1] - self.log.pose_times[0]) / 60.0
-        end = 1.0 - m * np.polyval(np.asarray(theta, float)[::-1], m)
+        end = remaining(theta, (self.log.pose_times[-1] - self.log.pose_times[0]) / 60.0)
         if end > 1.0:
             return (f"the robot would run {100 * (end - 1.0):.1f} % faster at the log's end than at its start, "
                     "where a battery only loses charge")
         return None
 
     def velocity(self, theta, v, ctx):
-        m = ctx["t"] / 60.0
-        return v * (1.0 - m * np.polyval(np.asarray(theta, float)[::-1], m))[:, None]
+        return v * remaining(theta, ctx["t"] / 60.0)[:, None]
+
+
+def remaining(theta, minutes):
+    """The share of its speed the robot keeps after ``minutes`` of running: ``1 - m (a + b m)``."""
+    m = np.asarray(minutes, float)
+    return 1.0 - m * np.polyval(np.asarray(theta, float)[::-1], m)
