@@ -212,6 +212,26 @@ def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_f
     assert v_ == "unexplained:time" and found            # scored on folds: the folds decided, not the terms
 
 
+def test_an_unexplained_motion_structure_without_a_term_is_the_slips_wander():
+    """The bins say the forward residuals follow time, but the sparse regression finds no term at all: the verdict
+    is none, its words naming the structure (a candidate set aside keeps its sentence). A term found, a sensor
+    channel's structure or ``needs_form`` off leave the verdict unexplained."""
+    time = {"channel": "forward", "name": "time", "strength": 0.015, "p": 1e-15, "kind": "mean"}
+    aside = D.SET_ASIDE + ": battery_fade lowers BIC by 500.0, but ..."
+    quiet = motion_channels(3, lambda v, t, pose: 0.0 * v)
+    v, words, found = D.discover("unexplained:time", ["No catalog effect ...", aside], quiet, D.ProposalOptions(),
+                                 structure=[time])
+    assert v == "none" and found == {} and "slow wander" in words[0] and "1.5 %" in words[0] and words[1] == aside
+    off = D.ProposalOptions(needs_form=False)
+    assert D.discover("unexplained:time", ["w"], quiet, off, structure=[time])[0] == "unexplained:time"
+    sensor = {**time, "channel": "reading", "name": "distance"}
+    assert D.discover("unexplained:distance", ["w"], quiet, D.ProposalOptions(), structure=[sensor])[0] \
+        == "unexplained:distance"
+    heading = motion_channels(3, lambda v, t, pose: 0.05 * v * np.cos(pose[:, 2]))
+    v, _, found = D.discover("unexplained:time", ["w"], heading, D.ProposalOptions(), structure=[time])
+    assert v.startswith("unexplained:") and found, v
+
+
 def test_a_strong_structure_against_place_backs_a_candidate_only_when_a_place_pair_holds_across_visits():
     """The strongest structure, turn residuals against place, follows the poses' wander (across visits p 0.8); the
     carpet shows in a weaker pair, forward against x, that holds across visits: the friction candidate is built for
@@ -333,6 +353,43 @@ def test_an_unexplained_motion_verdict_takes_the_proposals_covariate():
     held = {"forward": {"covariates": [{"name": "x", "visits_p": 0.001}]}}
     assert D.attributed("unexplained:time", ["w"], in_x, [{**time, "channel": "forward"}], held, 0.01)[0] \
         == "unexplained:x"
+
+
+def test_a_candidate_whose_refit_takes_the_unexplained_structure_away_is_named():
+    """No candidate has a second line and forward residuals follow time (the omni world's carpet seed 4, on the
+    carpet in stretches of the log): the patch, refitted, leaves that structure immaterial and is named, its
+    ``takes_away`` saying so; a refit keeping it material or more than ``refit_share`` of it, an implausible fit, a
+    candidate past the first ``refit_candidates`` or no refit at all leave ``unexplained:time``."""
+    time = {"channel": "forward", "name": "time", "strength": 0.051, "p": 2.8e-21, "kind": "mean"}
+
+    def refit(strength, p, asked):
+        def report(c):
+            asked.append(c.effect)
+            return {"forward": {"covariates": [{"name": "time", "strength": strength, "p": p, "kind": "mean"}]}}
+        return report
+
+    def cands():
+        return [replace(cand("surface_friction", -22106, float("nan")), heldout_skipped=D.NO_FOLDS),
+                replace(cand("battery_fade", -855, float("nan")), implausible="faster at the end")]
+
+    asked = []
+    c = cands()
+    v, words = D.verdict(c, [time], refit=refit(0.002, 0.18, asked))
+    assert v == "surface_friction" and asked == ["surface_friction"], (v, asked)
+    assert "takes away the strongest residual structure" in words[0] and "with it 0.2 %" in words[0], words
+    assert c[0].takes_away["p_after"] == 0.18 and c[0].to_json()["takes_away"]["covariate"] == "time"
+    asked = []
+    assert D.verdict(cands(), [time], refit=refit(0.034, 3.5e-37, asked))[0] == "unexplained:time"
+    assert D.verdict(cands(), [time], refit=refit(0.02, 1e-5, asked))[0] == "unexplained:time"   # immaterial, not gone
+    assert D.verdict(cands(), [time])[0] == "unexplained:time"                                     # no refit
+    asked = []
+    assert D.verdict(cands()[1:], [time], refit=refit(0.002, 0.18, asked))[0] == "unexplained:time"
+    assert asked == []                                             # the implausible fade is never refitted
+    later = [cand("landmark_offset", -30000, float("nan")), cand("lens_distortion", -25000, float("nan"))] + cands()
+    assert D.verdict(later, [time], refit=lambda c: None if c.effect != "surface_friction"
+                     else refit(0.002, 0.18, [])(c))[0] == "unexplained:time"              # past the first two
+    off = D.DiagnoseOptions(refit_candidates=0)
+    assert D.verdict(cands(), [time], options=off, refit=refit(0.002, 0.18, []))[0] == "unexplained:time"
 
 
 def test_verdict_rule():

@@ -202,3 +202,20 @@ def test_a_carpet_is_named_in_the_form_a_calibration_fits_best_and_its_turn_shar
     def rms(cal):
         return float(np.sqrt(np.mean((cal.trajectory["x"] - truth[:, 0]) ** 2 + (cal.trajectory["y"] - truth[:, 1]) ** 2)))
     assert rms(fixed) < 0.9 * rms(base), (rms(base), rms(fixed))
+
+
+@pytest.mark.science
+def test_a_carpet_seen_through_time_is_named_by_the_structure_its_fit_takes_away(tmp_path):
+    """The omni world's carpet of seed 4 (four minutes): the robot is on the carpet in stretches of the log, so the
+    forward residuals follow time, and the patch's dependence on place does not hold across the visits of four
+    minutes: without another line the verdict is ``unexplained:time``. Refitted with the patch, that structure is
+    no longer material, and the patch is named."""
+    omni_world.generate(tmp_path / "log", minutes=4, seed=4, effect="surface_friction")
+    log = cg.load_log(tmp_path / "log")
+    d = cg.diagnose(log, cg.calibrate(log, seed=4), candidates=["surface_friction", "battery_fade"])
+    c = next(c for c in d.candidates if c.effect == "surface_friction")
+    print(d.verdict, c.takes_away, [(c.effect, round(c.delta_bic), c.implausible) for c in d.candidates])
+    assert d.verdict == "surface_friction" and c.takes_away["covariate"] == "time", d.words
+    assert c.takes_away["p_after"] > d.options.structure_p
+    explains = {c.effect: REGISTRY[c.effect].explains for c in d.candidates}
+    assert verdict(d.candidates, d.structure, explains, d.options, report=d.channels)[0] == "unexplained:time"

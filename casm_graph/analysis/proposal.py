@@ -42,6 +42,9 @@ class ProposalOptions:
     shortest_period: float = 30.0  # s: the fastest oscillation in time the library tries
     min_cycles: float = 1.5       # the slowest: this many periods must fit in the log
     periods: int = 40             # periods tried, evenly on a log scale
+    needs_form: bool = True       # an unexplained motion structure for which no term passes is the slip's slow
+    #                               wander: the verdict is none (car world, the lag added: lateral residuals against
+    #                               time, p 1e-15, no term; the uncataloged effects each had theirs)
 
 
 def _blocks(time: np.ndarray, block_s: float) -> np.ndarray:

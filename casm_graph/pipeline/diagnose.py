@@ -74,7 +74,7 @@ def diagnose(log: Log, calibration: Calibration | Model, extra_effects=(), candi
     cands, skipped, explains, separated_by = part.score(struct)
     for c in cands:
         c.change = sighting_change(part.base_prediction, c.prediction)
-    v, words = verdict(cands, struct, explains, o, last=part.last, report=rep)
+    v, words = verdict(cands, struct, explains, o, last=part.last, report=rep, refit=part.refit_report)
     v, words, found = discover(v, words, chs, o.proposal, cands, explains, o.bic_support, part.challenge,
                                o.proposal_challenge, o.lookalike_bic, report=rep, visit_p=o.visit_p,
                                structure=struct)

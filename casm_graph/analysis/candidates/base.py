@@ -36,6 +36,11 @@ class Bench:
         (``distinguished_by``). ``structure``: the residuals' strong dependences (held-out rounds are decided by them)."""
         raise NotImplementedError
 
+    def refit_report(self, c: Candidate) -> dict | None:
+        """The channel report of the log refitted with candidate ``c``'s fitted effect (its second line when its fit
+        takes away a structure); None where this part does not refit so."""
+        return None
+
     def challenge(self, cls) -> tuple[float, float]:
         """(log-likelihood gain, delta BIC) of the effect class ``cls`` (the sparse regression's proposal) scored as
         the candidates were."""

@@ -17,10 +17,10 @@ import numpy as np
 from casm_graph.analysis.candidates.base import Bench
 from casm_graph.analysis.candidates.pool import call, parallel
 from casm_graph.analysis.diagnosis import (DEFAULTS, NO_FOLDS, Candidate, DiagnoseOptions, best_of_family,
-                                           chosen_candidates, family_best, family_members, folds, leading,
-                                           predicted_sightings, standardised)
+                                           channel_report, chosen_candidates, family_best, family_members, folds,
+                                           leading, predicted_sightings, standardised)
 from casm_graph.fit import continuous as CT
-from casm_graph.fit.residuals import sighting_leverage, sighting_residuals
+from casm_graph.fit.residuals import channels, sighting_leverage, sighting_residuals
 from casm_graph.fit.result import Fit
 from casm_graph.fit.solve import least_squares
 from casm_graph.graph import augmented
@@ -180,6 +180,7 @@ class CommandBench(Bench):
         graph = calibrated.command_graph if calibrated is not None else CT.options_of(model)
         self.graph = graph
         self.coarse_fits = {}            # id of a hooked candidate -> its model settled on the coarse graph
+        self.with_candidate = {}         # id of a candidate -> the base's model with its effect fitted, its effects
         self.search = replace(graph.profile, lag_order_support=o.lag_order_support)    # the diagnosis's own support
         self.chosen = chosen_candidates(candidates, extra_effects)
         if progress is not None:
@@ -260,6 +261,7 @@ class CommandBench(Bench):
                                                    **({"order": prof.order} if prof.order > 1 else {})},
                                        heldout_skipped=NO_FOLDS, prediction=prediction))
                 settles[id(cands[-1])] = (partial(self.settle_profiled, lagged=lagged), prof.order)
+                self.with_candidate[id(cands[-1])] = (lagged, self.own)
             for e in hooked:
                 if e.noise_only:                  # scored at the base's poses, without a refit
                     cands.append(noise_candidate(log, model, self.poses, self.own, e, self.cuse, n, o,
@@ -278,6 +280,8 @@ class CommandBench(Bench):
                                        prediction=prediction, implausible=unphysical(type(e), entry, log) or ""))
                 settles[id(cands[-1])] = (partial(self.settle_hooked, e=e), e.free_parameters())
                 self.coarse_fits[id(cands[-1])] = m
+                self.with_candidate[id(cands[-1])] = (model.with_(effects={**model.effects, e.name: entry}),
+                                                      [*self.own, e])
         cands = [cands[i] for i in best_of_family(cands, self.confirm(cands, fitted))]   # BIC keeps one member
         cands.sort(key=lambda c: c.delta_bic)
         self.decide(cands, settles)
@@ -347,10 +351,25 @@ class CommandBench(Bench):
         self.ll0, _, self.base_prediction = done[0]
         for c, (ll, m, prediction) in zip(leaders, done[1:]):
             c.parameters = dict(m.effects.get(c.effect, c.parameters))    # a hooked effect's moved with the rounds
+            if c.effect in m.effects:
+                with_c, effects = self.with_candidate[id(c)]
+                self.with_candidate[id(c)] = (with_c.with_(effects={**with_c.effects, c.effect: c.parameters}), effects)
             c.delta_log_likelihood = float(ll - self.ll0)
             c.delta_bic = -2 * c.delta_log_likelihood + settles[id(c)][1] * np.log(n)
             c.prediction = prediction
         cands.sort(key=lambda c: c.delta_bic)
+
+    def refit_report(self, c: Candidate) -> dict | None:
+        """The channel report of the base's model with ``c``'s fitted effect, its noise levels the base's, refitted on
+        the base's graph from its poses: the base's report and this one differ by the effect alone."""
+        if id(c) not in self.with_candidate:
+            return None
+        model, effects = self.with_candidate[id(c)]
+        lay = self.problem.lay
+        problem = Problem(self.log, model, effects, lay=lay, gate=self.use, poses=self.poses[lay.knots])
+        st, _ = least_squares(problem, problem.state(self.poses[lay.knots], model),
+                              max_iterations=self.options.candidate_iterations)
+        return channel_report(channels(problem, st, self.options.command_change), self.options)
 
     def challenge(self, cls) -> tuple[float, float]:
         """The proposal, settled as a hooked candidate against the same base."""
