@@ -202,7 +202,7 @@ def motion_channels(seed, forward, n=6000, dt=0.1):
 
 def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_for():
     """A forward speed falling slowly with time (a weak battery fade) and no bin test: the sparse regression's
-    term in time names the candidate built for (forward, time) when no folds scored it."""
+    term in time names the candidate built for (forward, time) when no folds scored it and its fit can happen."""
     chs = motion_channels(0, lambda v, t, pose: -0.02 * v * t / 60.0)
     explains = {"battery_fade": (("forward", "time"),)}
     v_, words, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, float("nan"))],
@@ -210,6 +210,8 @@ def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_f
     assert v_ == "battery_fade" and "forward residuals depending on time" in words[0] and found == {}
     v_, _, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, -3.0)], explains)
     assert v_ == "unexplained:time" and found            # scored on folds: the folds decided, not the terms
+    faster = replace(cand("battery_fade", -600, float("nan")), implausible="faster at the end")
+    assert D.discover("none", [], chs, D.ProposalOptions(), [faster], explains)[0] == "unexplained:time"   # set aside
 
 
 def test_an_unexplained_motion_structure_without_a_term_is_the_slips_wander():

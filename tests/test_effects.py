@@ -234,8 +234,9 @@ def test_a_floor_that_changes_the_speed_beyond_physics_is_implausible():
 
 def test_a_fade_that_speeds_the_robot_up_is_implausible(short):
     """A battery only loses charge: a fade fit that leaves the robot faster at the log's end (one minute here) than at
-    its start cannot happen, of either member; a quadratic that rises early and ends slower can. Without a log
-    there is no end to judge by."""
+    its start cannot happen, of either member, nor one that regains more than half the speed it had lost at its
+    slowest; a quadratic that rises early and ends slower can, or one that regains a little. Without a log there is
+    no end to judge by."""
     log, _ = short
     minutes = (log.pose_times[-1] - log.pose_times[0]) / 60.0
     assert minutes == pytest.approx(1.0, abs=0.01)
@@ -244,6 +245,8 @@ def test_a_fade_that_speeds_the_robot_up_is_implausible(short):
     assert "2.0 % faster at the log's end" in line.implausible(np.array([-0.02]))
     assert bend.implausible(np.array([-0.01, 0.03])) is None                           # ends 2 % slower
     assert "1.0 % faster" in bend.implausible(np.array([0.02, -0.03]))
+    assert "regain 1.0 %" in bend.implausible(np.array([0.04, -0.04]))       # down 1 % by half a minute, all back
+    assert bend.implausible(np.array([0.03, -0.02])) is None                 # down 1.1 %, a ninth of it back
     assert get("battery_fade")(None).implausible(np.array([-0.02])) is None
     entry = line.describe(np.array([-0.02]))
     assert unphysical(get("battery_fade"), entry, log) == line.implausible(np.array([-0.02]))

@@ -962,7 +962,7 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
         return verdict_name, words, {}
     terms = term_covariates(found)
     backing = [t for t in terms if holds_across_visits(report, t[0], t[1], visit_p)]
-    built = [c for c in sorted(cands, key=lambda c: c.delta_bic) if c.delta_bic <= support
+    built = [c for c in sorted(cands, key=lambda c: c.delta_bic) if c.delta_bic <= support and not c.implausible
              and np.isnan(c.heldout_nll_drop) and any(t in tuple((explains or {}).get(c.effect, ())) for t in backing)]
     if built:
         c = built[0]

@@ -32,15 +32,26 @@ class BatteryFade(Effect):
         self.params = ("loss_per_minute", "loss_per_minute_squared")[:order]
         self.start, self.scale = (0.0,) * order, (0.005, 0.0005)[:order]
 
+    regain_share = 0.5    # a fit may regain at most this share of its deepest loss by the log's end
+
     def implausible(self, theta):
-        """A battery only loses charge: a fit that has the robot faster at the log's end than at its start follows
-        something else (a slow floor the robot crosses early in the log)."""
+        """A battery only loses charge: a fit that has the robot faster at the log's end than at its start, or
+        regaining more than ``regain_share`` of the speed it had lost at its slowest, follows something else (a slow
+        floor the robot crosses early in the log; the slip's wander, which an effect-free omni log's quadratic
+        followed down 2.5 % and back up 2.1 %)."""
         if self.log is None or len(self.log.pose_times) < 2:
             return None
-        end = remaining(theta, (self.log.pose_times[-1] - self.log.pose_times[0]) / 60.0)
+        span = (self.log.pose_times[-1] - self.log.pose_times[0]) / 60.0
+        end = remaining(theta, span)
         if end > 1.0:
             return (f"the robot would run {100 * (end - 1.0):.1f} % faster at the log's end than at its start, "
                     "where a battery only loses charge")
+        m = np.linspace(0.0, span, 241)
+        r = remaining(theta, m)
+        low = int(np.argmin(r))
+        if end - r[low] > self.regain_share * (1.0 - r[low]):
+            return (f"the robot would lose {100 * (1.0 - r[low]):.1f} % of its speed by minute {m[low]:.1f} and "
+                    f"regain {100 * (end - r[low]):.1f} % by the log's end, where a battery only loses charge")
         return None
 
     def velocity(self, theta, v, ctx):
