@@ -211,7 +211,10 @@ def test_discovered_terms_are_the_structure_a_candidate_without_folds_is_built_f
     v_, _, found = D.discover("none", [], chs, D.ProposalOptions(), [cand("battery_fade", -600, -3.0)], explains)
     assert v_ == "unexplained:time" and found            # scored on folds: the folds decided, not the terms
     faster = replace(cand("battery_fade", -600, float("nan")), implausible="faster at the end")
-    assert D.discover("none", [], chs, D.ProposalOptions(), [faster], explains)[0] == "unexplained:time"   # set aside
+    aside = D.SET_ASIDE + ": battery_fade lowers BIC by 1200.0, but ..."
+    v_, words, _ = D.discover("none", ["The model explains the data ...", aside], chs, D.ProposalOptions(), [faster],
+                              explains)
+    assert v_ == "unexplained:time" and words[-1] == aside and len(words) == 2        # set aside, and still said
 
 
 def test_an_unexplained_motion_structure_without_a_term_is_the_slips_wander():

@@ -970,14 +970,14 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
         return c.effect, [
             f"The residuals point to {c.effect}: adding it lowers BIC by {-c.delta_bic:.1f}, and a sparse regression "
             f"of the motion residuals finds the {axis} residuals depending on {cov} (|t| >= {options.min_t:g}), the "
-            f"structure it is built for. {c.explanation}"], {}
+            f"structure it is built for. {c.explanation}"] + [w for w in words if w.startswith(SET_ASIDE)], {}
     if terms[0] not in backing or strongest_t(found) < options.last_test_t:
         return verdict_name, words, {}
     cov = terms[0][1]
     return f"unexplained:{cov}", [
         "No catalog effect is supported and no single covariate's bins show material structure, but a sparse "
         f"regression of the motion residuals finds terms that pass its test (|t| >= {options.min_t:g}): something "
-        f"the model and the catalog lack depends on {cov}."], found
+        f"the model and the catalog lack depends on {cov}."] + [w for w in words if w.startswith(SET_ASIDE)], found
 
 
 def formless(verdict_name: str, words: list[str], found: dict, structure: list[dict], visit_p: float,

@@ -19,6 +19,7 @@ class BatteryFade(Effect):
     scale = (0.005,)
     orders = (1, 2)
     order = 1
+    regain_share = 0.5    # a fit may regain at most this share of its deepest loss by the log's end
     explains = (("forward", "time"), ("lateral", "time"), ("turn", "time"))
     signature = "speed"
     distinguished_by = ("the same actions run early and late in every part of the field: a fading battery slows "
@@ -31,8 +32,6 @@ class BatteryFade(Effect):
         super().set_order(order)
         self.params = ("loss_per_minute", "loss_per_minute_squared")[:order]
         self.start, self.scale = (0.0,) * order, (0.005, 0.0005)[:order]
-
-    regain_share = 0.5    # a fit may regain at most this share of its deepest loss by the log's end
 
     def implausible(self, theta):
         """A battery only loses charge: a fit that has the robot faster at the log's end than at its start, or
