@@ -265,6 +265,13 @@ def anova(y: np.ndarray, g: np.ndarray, inflation: float) -> tuple[float, float]
 
 MOTION_CHANNELS = ("forward", "lateral", "turn")
 SET_ASIDE = "Set aside as not physical"       # how the words of a candidate set aside begin
+
+
+def set_aside_words(words: list[str]) -> list[str]:
+    """The sentences of ``words`` naming a candidate set aside as not physical: kept whatever the verdict becomes."""
+    return [w for w in words if w.startswith(SET_ASIDE)]
+
+
 MIN_SHARE = 0.05        # the least share of its noise a residual keeps (1 - leverage) when standardised
 
 
@@ -685,18 +692,17 @@ def is_supported(c: Candidate, matches: Callable, options: DiagnoseOptions = DEF
         or (matches(c) and not c.heldout_nll_drop < -options.heldout_veto))
 
 
-def taking_away(cands: list[Candidate], s: dict, refit: Callable | None,
+def taking_away(gaining: list[Candidate], s: dict, refit: Callable | None,
                 options: DiagnoseOptions = DEFAULTS) -> Candidate | None:
-    """The first of the ``options.refit_candidates`` candidates lowering BIC strongly (plausible, the held-out score
-    not against it) whose refit on the log (``refit``: a candidate -> the channel report with its fit, or None) leaves
-    the residual structure ``s`` no longer material (:func:`structures`) with at most ``options.refit_share`` of its
-    strength, its ``takes_away`` saying so; None when none does. A structure an effect's fit takes away is that effect's, whatever covariate the bins saw it through (a floor
-    the robot crosses in stretches of the log shows against time)."""
+    """The first of the ``options.refit_candidates`` candidates of ``gaining`` (those lowering BIC strongly,
+    plausible, the lowest delta BIC first) with the held-out score not against it whose refit on the log
+    (``refit``: a candidate -> the channel report with its fit, or None) leaves the residual structure ``s`` no
+    longer material (:func:`structures`) with at most ``options.refit_share`` of its strength, its ``takes_away``
+    saying so; None when none does. A structure an effect's fit takes away is that effect's, whatever covariate the
+    bins saw it through (a floor the robot crosses in stretches of the log shows against time)."""
     if refit is None or options.refit_candidates <= 0:
         return None
-    gaining = sorted((c for c in cands if c.delta_bic <= options.bic_support and not c.implausible
-                      and not c.heldout_nll_drop < -options.heldout_veto), key=lambda c: c.delta_bic)
-    for c in gaining[:options.refit_candidates]:
+    for c in [c for c in gaining if not c.heldout_nll_drop < -options.heldout_veto][:options.refit_candidates]:
         rep = refit(c)
         after = next((t for t in (rep or {}).get(s["channel"], {}).get("covariates", []) if t["name"] == s["name"]),
                      None)
@@ -737,8 +743,10 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
     matches = built_for(strong, explains, report, structure, o)
     supported = [c for c in cands if is_supported(c, matches, o)]
     lasting = [s for s in structure if repeats(s, o.visit_p)]
+    gaining = sorted((c for c in cands if c.delta_bic <= o.bic_support and not c.implausible),
+                     key=lambda c: c.delta_bic)
     if not supported and lasting:
-        supported = [c for c in [taking_away(cands, lasting[0], refit, o)] if c is not None]
+        supported = [c for c in [taking_away(gaining, lasting[0], refit, o)] if c is not None]
     aside = [f"{SET_ASIDE}: {c.effect} lowers BIC by {-c.delta_bic:.1f}, but its fit says {c.implausible}; "
              "it bends that effect's form around structure of another kind." for c in cands
              if c.implausible and c.delta_bic <= o.bic_support]
@@ -795,8 +803,6 @@ def verdict(cands: list[Candidate], structure: list[dict], explains: dict | None
             words.append("Also lowering BIC strongly, not scored on held-out folds (the verdict does not depend on "
                          "them): " + ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in unscored) + ".")
         return best.effect, words + aside
-    gaining = sorted((c for c in cands if c.delta_bic <= o.bic_support and not c.implausible),
-                     key=lambda c: c.delta_bic)
     named = ", ".join(f"{c.effect} (delta BIC {c.delta_bic:.1f})" for c in gaining[:3])
     if lasting:
         s = lasting[0]
@@ -970,14 +976,21 @@ def discover(verdict_name: str, words: list[str], chs: dict, options: ProposalOp
         return c.effect, [
             f"The residuals point to {c.effect}: adding it lowers BIC by {-c.delta_bic:.1f}, and a sparse regression "
             f"of the motion residuals finds the {axis} residuals depending on {cov} (|t| >= {options.min_t:g}), the "
-            f"structure it is built for. {c.explanation}"] + [w for w in words if w.startswith(SET_ASIDE)], {}
+            f"structure it is built for. {c.explanation}"] + set_aside_words(words), {}
     if terms[0] not in backing or strongest_t(found) < options.last_test_t:
         return verdict_name, words, {}
     cov = terms[0][1]
     return f"unexplained:{cov}", [
         "No catalog effect is supported and no single covariate's bins show material structure, but a sparse "
         f"regression of the motion residuals finds terms that pass its test (|t| >= {options.min_t:g}): something "
-        f"the model and the catalog lack depends on {cov}."] + [w for w in words if w.startswith(SET_ASIDE)], found
+        f"the model and the catalog lack depends on {cov}."] + set_aside_words(words), found
+
+
+def verdict_structure(verdict_name: str, structure: list[dict], visit_p: float) -> tuple[str, dict | None]:
+    """(the covariate of an ``unexplained:<covariate>`` verdict, the first structure in it of ``structure`` that holds
+    across the robot's visits at ``visit_p``, or None)."""
+    named = verdict_name.partition(":")[2]
+    return named, next((s for s in structure if s["name"] == named and repeats(s, visit_p)), None)
 
 
 def formless(verdict_name: str, words: list[str], found: dict, structure: list[dict], visit_p: float,
@@ -988,8 +1001,7 @@ def formless(verdict_name: str, words: list[str], found: dict, structure: list[d
     covariates, their products, oscillations in time) is the slip's slow wander (car world, the lag added: lateral
     residuals against time, 1.5 % of their variance, p 1e-15; the wheel world's effect-free seed 0 alike), where the
     uncataloged effects of the test worlds each had their terms; None otherwise."""
-    named = verdict_name.partition(":")[2]
-    s = next((s for s in structure if s["name"] == named and repeats(s, visit_p)), None)
+    named, s = verdict_structure(verdict_name, structure, visit_p)
     if not options.needs_form or found or s is None or s["channel"] not in MOTION_CHANNELS:
         return None
     return "none", [
@@ -997,7 +1009,7 @@ def formless(verdict_name: str, words: list[str], found: dict, structure: list[d
         f"({100 * s['strength']:.1f} % of their variance, p = {s['p']:.1e}), but a sparse regression of the motion "
         f"residuals finds no term that follows it (the covariates, their products, oscillations in time: none reaches "
         f"|t| = {options.min_t:g}). A dependence without a form is the slip's slow wander over the log, not an effect "
-        f"the model lacks."] + [w for w in words if w.startswith(SET_ASIDE)]
+        f"the model lacks."] + set_aside_words(words)
 
 
 def attributed(verdict_name: str, words: list[str], found: dict, structure: list[dict], report: dict | None,
@@ -1008,8 +1020,7 @@ def attributed(verdict_name: str, words: list[str], found: dict, structure: list
     visits too (:func:`holds_across_visits`): a robot whose speed changes along the log shows a turn rate that
     grows with speed against time as well (continuous world, seed 1: turn residuals against time, 1.3 % of their
     variance; the proposal turn += 0.126 speed, |t| 6.9). A term on another channel is another structure."""
-    named = verdict_name.partition(":")[2]
-    s = next((s for s in structure if s["name"] == named and repeats(s, visit_p)), None)
+    named, s = verdict_structure(verdict_name, structure, visit_p)
     if not found or s is None or s["channel"] not in MOTION_CHANNELS:
         return verdict_name, words
     cov = next((c for a, c in term_covariates(found) if a == s["channel"]), named)

@@ -159,6 +159,15 @@ def noise_candidate(log: Log, model: Model, poses: np.ndarray, effects: list, ef
                      explanation=effect.physics, delta_log_likelihood=dll, parameters=described(p), heldout_skipped="")
 
 
+def refitted(log: Log, model: Model, effects, lay, use, poses: np.ndarray, iterations: int) -> tuple:
+    """(the fine graph's problem, its state after ``iterations`` LM iterations) for ``model`` with ``effects`` on
+    the layout ``lay`` and gate ``use``, started from ``poses`` (every step's): the base's refit and a candidate's
+    on the same footing."""
+    problem = Problem(log, model, effects, lay=lay, gate=use, poses=poses[lay.knots])
+    st, _ = least_squares(problem, problem.state(poses[lay.knots], model), max_iterations=iterations)
+    return problem, st
+
+
 class CommandBench(Bench):
     """The candidates of a continuous-command log, settled on the coarse graph against one base settled alike.
 
@@ -188,8 +197,7 @@ class CommandBench(Bench):
         self.own = own = CT.hooked_effects(log, model, extra_effects)
         lay = CT.layout(log, graph.full_knot_dt)
         use = CT.gate(log, poses[log.obs_step], model, effects=own)
-        problem = Problem(log, model, own, lay=lay, gate=use, poses=poses[lay.knots])
-        st, _ = least_squares(problem, problem.state(poses[lay.knots], model), max_iterations=o.candidate_iterations)
+        problem, st = refitted(log, model, own, lay, use, poses, o.candidate_iterations)
         self.model = model = problem.with_state(model, st)
         full = CT.fill_in(log, model, lay.knots, st.poses)
         self.fit = Fit(model=model, poses=full, pose_std=np.full_like(full, np.nan), log_likelihood=-problem.cost(st))
@@ -364,11 +372,11 @@ class CommandBench(Bench):
         the base's graph from its poses: the base's report and this one differ by the effect alone."""
         if id(c) not in self.with_candidate:
             return None
+        if self.progress is not None:
+            self.progress.stage(f"refit with {c.effect}", None)
         model, effects = self.with_candidate[id(c)]
-        lay = self.problem.lay
-        problem = Problem(self.log, model, effects, lay=lay, gate=self.use, poses=self.poses[lay.knots])
-        st, _ = least_squares(problem, problem.state(self.poses[lay.knots], model),
-                              max_iterations=self.options.candidate_iterations)
+        problem, st = refitted(self.log, model, effects, self.problem.lay, self.use, self.poses,
+                               self.options.candidate_iterations)
         return channel_report(channels(problem, st, self.options.command_change), self.options)
 
     def challenge(self, cls) -> tuple[float, float]:
